@@ -1,0 +1,49 @@
+"""The ``gtkit`` command. Subcommands live in :mod:`gtkit.commands`, one module each, found
+automatically; every module defines ``register(subparsers)`` and sets ``func`` on its parser.
+A subcommand only parses arguments and calls one stage or pipeline function.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+
+from . import __version__, commands
+from .errors import GtkitError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gtkit", description="Photogrammetry and ground-truth toolkit "
+                                     "for UAV 6-DoF visual localization.")
+    parser.add_argument("--version", action="version", version=f"gtkit {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for mod in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        if not mod.name.startswith("_"):
+            importlib.import_module(f"{commands.__name__}.{mod.name}").register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        rv = args.func(args)
+    except GtkitError as e:
+        print(f"gtkit: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("gtkit: interrupted; finished stages are kept and a re-run resumes", file=sys.stderr)
+        return 130
+    return int(rv or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

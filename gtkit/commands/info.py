@@ -1,0 +1,27 @@
+"""``gtkit info DIR``: a project's CRS, origin, images and which stages are finished."""
+from __future__ import annotations
+
+
+def register(sub):
+    p = sub.add_parser("info", help="summarise a project folder")
+    p.add_argument("project")
+    p.set_defaults(func=run)
+
+
+def run(args):
+    import json
+
+    from ..project import STAGE_RECORD, Project
+
+    proj = Project.load(args.project)
+    P = proj.paths
+    print(f"project   {proj.name}  ({P.root})")
+    print(f"crs       {proj.frame.crs_spec}  origin {list(proj.frame.origin)}")
+    n_ref = len(list(P.reference_images.glob("*.*"))) if P.reference_images.is_dir() else 0
+    print(f"reference {n_ref} photos")
+    for seq in P.query_sequences():
+        print(f"sequence  {seq}: {len(list((P.query_images / seq).glob('*.*')))} photos")
+    if P.work.is_dir():
+        for rec in sorted(P.work.glob(f"*/{STAGE_RECORD}")):
+            d = json.loads(rec.read_text())
+            print(f"stage     {rec.parent.name}: finished {d.get('finished')}")

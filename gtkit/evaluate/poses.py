@@ -1,0 +1,39 @@
+"""Pose errors against truth and recall at (metres, degrees) thresholds."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..pose import Pose
+
+THRESHOLDS = ((1.0, 1.0), (3.0, 3.0), (5.0, 5.0))
+
+
+def pose_errors(estimated: dict[str, Pose], truth: dict[str, Pose], names=None) -> dict[str, dict]:
+    """Per image: ``pos_err_m`` (camera-centre distance), ``rot_err_deg`` (geodesic), or
+    ``missing: True`` when the estimate is absent (counted as a failure by :func:`recall`)."""
+    out = {}
+    for name in (names if names is not None else sorted(truth)):
+        if name not in estimated:
+            out[name] = {"missing": True}
+            continue
+        dp, dr = estimated[name].error_to(truth[name])
+        out[name] = {"pos_err_m": dp, "rot_err_deg": dr}
+    return out
+
+
+def recall(errors: dict[str, dict], thresholds=THRESHOLDS) -> dict[str, float]:
+    """Share of images (missing ones count as failures) within each (m, deg) threshold."""
+    n = max(len(errors), 1)
+    res = {}
+    for m, d in thresholds:
+        ok = sum(1 for e in errors.values()
+                 if not e.get("missing") and e["pos_err_m"] <= m and e["rot_err_deg"] <= d)
+        res[f"recall_{m:g}m{d:g}deg"] = ok / n
+    return res
+
+
+def medians(errors: dict[str, dict]) -> dict[str, float | None]:
+    pe = [e["pos_err_m"] for e in errors.values() if not e.get("missing")]
+    re = [e["rot_err_deg"] for e in errors.values() if not e.get("missing")]
+    return {"median_pos_err_m": float(np.median(pe)) if pe else None,
+            "median_rot_err_deg": float(np.median(re)) if re else None}

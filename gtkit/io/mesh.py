@@ -1,0 +1,208 @@
+"""Meshes: loading OBJ+MTL / PLY / GLB into gtkit's plain mesh type, and the offset sidecar.
+
+A mesh file stores vertices as *CRS coordinates minus an offset* (like OpenDroneMap's
+UTM-minus-offset OBJ). The offset and the CRS live in a sidecar JSON beside the mesh,
+``<mesh file>.offset.json``::
+
+    {"crs": "EPSG:32650", "offset": [500000.0, 4000000.0, 0.0],
+     "note": "vertex + offset = coordinates in crs (metres)"}
+
+Without a sidecar a mesh is assumed to be in the project's world frame already only when
+the caller says so; see :func:`load_model`.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GtkitError
+from .atomic import write_json
+
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
+
+
+@dataclass
+class MeshPart:
+    """One drawable piece: triangles with either a texture (uv + image) or vertex colours."""
+
+    vertices: np.ndarray                 # (N, 3) float64, world frame
+    faces: np.ndarray                    # (M, 3) int
+    uv: np.ndarray | None = None         # (N, 2) float, OpenGL convention (v up)
+    texture: np.ndarray | None = None    # (H, W, 3) uint8, row 0 = top of the image
+    colors: np.ndarray | None = None     # (N, 3) uint8
+    material: np.ndarray | None = None   # (N,) float32 material id (procedural shading)
+    name: str = ""
+
+
+@dataclass
+class Mesh:
+    parts: list[MeshPart] = field(default_factory=list)
+
+    @property
+    def n_triangles(self) -> int:
+        return sum(len(p.faces) for p in self.parts)
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) min and max corner."""
+        v = np.concatenate([p.vertices for p in self.parts])
+        return np.stack([v.min(0), v.max(0)])
+
+    def translated(self, d) -> "Mesh":
+        d = np.asarray(d, dtype=np.float64)
+        return Mesh([MeshPart(p.vertices + d, p.faces, p.uv, p.texture, p.colors, p.material, p.name)
+                     for p in self.parts])
+
+    def to_trimesh(self):
+        """A single trimesh.Trimesh (geometry only, parts concatenated)."""
+        import trimesh
+
+        verts, faces, off = [], [], 0
+        for p in self.parts:
+            verts.append(p.vertices)
+            faces.append(p.faces + off)
+            off += len(p.vertices)
+        return trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
+
+
+def sidecar_path(mesh_path: Path) -> Path:
+    return Path(str(mesh_path) + ".offset.json")
+
+
+def write_offset_sidecar(mesh_path: Path, crs: str, offset) -> Path:
+    return write_json(sidecar_path(mesh_path), {
+        "crs": crs, "offset": [float(v) for v in offset],
+        "note": "vertex + offset = coordinates in crs (metres); z is height as given"})
+
+
+def read_offset_sidecar(mesh_path: Path) -> tuple[str, np.ndarray] | None:
+    p = sidecar_path(Path(mesh_path))
+    if not p.is_file():
+        return None
+    try:
+        d = json.loads(p.read_text())
+        off = np.array(d["offset"], dtype=np.float64)
+        if off.shape != (3,) or not np.all(np.isfinite(off)):
+            raise ValueError("offset must be three finite numbers")
+        return str(d["crs"]), off
+    except (json.JSONDecodeError, KeyError, ValueError, TypeError) as e:
+        raise GtkitError(f"invalid offset sidecar ({e})", p) from None
+
+
+def _part_from_trimesh(g, name: str) -> MeshPart:
+    import trimesh
+
+    v = np.asarray(g.vertices, dtype=np.float64)
+    f = np.asarray(g.faces, dtype=np.int64)
+    vis = g.visual
+    if isinstance(vis, trimesh.visual.texture.TextureVisuals) and vis.uv is not None:
+        img = getattr(vis.material, "image", None)
+        if img is None and hasattr(vis.material, "baseColorTexture"):
+            img = vis.material.baseColorTexture
+        if img is not None:
+            tex = np.asarray(img.convert("RGB"))
+            return MeshPart(v, f, uv=np.asarray(vis.uv, dtype=np.float64), texture=tex, name=name)
+        try:
+            vis = vis.to_color()
+        except Exception:  # noqa: BLE001 - a material without image: fall through to grey
+            return MeshPart(v, f, colors=np.full((len(v), 3), 180, np.uint8), name=name)
+    colors = None
+    if hasattr(vis, "vertex_colors") and vis.kind is not None:
+        colors = np.asarray(vis.vertex_colors)[:, :3].astype(np.uint8)
+    if colors is None or len(colors) != len(v):
+        colors = np.full((len(v), 3), 180, np.uint8)
+    return MeshPart(v, f, colors=colors, name=name)
+
+
+def read_mesh_file(path: str | Path) -> Mesh:
+    """Load a mesh file as it is stored (no offset applied). Clear error if it is not a mesh."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise GtkitError("mesh file not found", path)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise GtkitError(f"not a mesh file (expected one of {', '.join(MESH_SUFFIXES)})", path)
+    try:
+        loaded = trimesh.load(str(path), process=False, maintain_order=True)
+    except Exception as e:  # noqa: BLE001 - trimesh raises many types; all mean "unreadable"
+        raise GtkitError(f"not a readable mesh ({type(e).__name__}: {str(e)[:120]})", path) from None
+    if isinstance(loaded, trimesh.Scene):
+        geoms = []
+        for node in loaded.graph.nodes_geometry:
+            T, gname = loaded.graph[node]
+            geoms.append((gname, loaded.geometry[gname].copy().apply_transform(T)))
+    else:
+        geoms = [(path.stem, loaded)]
+    mesh = Mesh([_part_from_trimesh(g, n) for n, g in geoms
+                 if isinstance(g, trimesh.Trimesh) and len(g.faces)])
+    if not mesh.parts:
+        raise GtkitError("file holds no triangles", path)
+    return mesh
+
+
+def load_model(path: str | Path, frame=None, crs: str | None = None, offset=None) -> Mesh:
+    """Load a mesh into the project's world frame.
+
+    The offset and CRS come from the sidecar, or from ``crs``/``offset`` (command line). With a
+    ``frame`` (:class:`gtkit.geo.GeoFrame`), a CRS different from the project's is an error and
+    the project's origin is subtracted. Without a frame the mesh is returned as stored + offset.
+    """
+    path = Path(path)
+    side = read_offset_sidecar(path)
+    if side is not None:
+        crs, offset = side
+    if frame is None:
+        mesh = read_mesh_file(path)
+        return mesh if offset is None else mesh.translated(offset)
+    if crs is None:
+        raise GtkitError("mesh has no georeference: write a .offset.json sidecar or give --crs and --offset",
+                         path)
+    from ..geo import parse_crs
+
+    if not parse_crs(crs, path).equals(frame.crs):
+        raise GtkitError(f"mesh CRS {crs} does not match the project CRS {frame.crs_spec}", path)
+    mesh = read_mesh_file(path)
+    return mesh.translated(np.asarray(offset if offset is not None else (0, 0, 0)) - np.asarray(frame.origin))
+
+
+def write_obj(path: str | Path, mesh: Mesh, texture_format: str = "jpg") -> Path:
+    """Write an OBJ + MTL + one texture per textured part, atomically (files renamed last)."""
+    import cv2
+
+    from .atomic import atomic_path, write_text
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mtl_name = path.with_suffix(".mtl").name
+    lines = [f"mtllib {mtl_name}"]
+    mtl = []
+    vo = to = 0
+    for i, p in enumerate(mesh.parts):
+        mat = f"material_{i:03d}"
+        lines.append(f"o {p.name or mat}")
+        if p.colors is not None and p.uv is None:
+            lines += [f"v {x:.4f} {y:.4f} {z:.4f} {r / 255:.4f} {g / 255:.4f} {b / 255:.4f}"
+                      for (x, y, z), (r, g, b) in zip(p.vertices, p.colors)]
+        else:
+            lines += [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in p.vertices]
+        if p.uv is not None and p.texture is not None:
+            tex_name = f"{path.stem}_{i:03d}.{texture_format}"
+            with atomic_path(path.parent / tex_name) as tmp:
+                cv2.imwrite(str(tmp), cv2.cvtColor(p.texture, cv2.COLOR_RGB2BGR))
+            mtl += [f"newmtl {mat}", "Ka 1 1 1", "Kd 1 1 1", "Ks 0 0 0", "d 1", "illum 1", f"map_Kd {tex_name}", ""]
+            lines += [f"vt {u:.6f} {v:.6f}" for u, v in p.uv]
+            lines.append(f"usemtl {mat}")
+            f = p.faces + 1
+            lines += [f"f {a + vo}/{a + to} {b + vo}/{b + to} {c + vo}/{c + to}" for a, b, c in f]
+            to += len(p.uv)
+        else:
+            mtl += [f"newmtl {mat}", "Kd 1 1 1", ""]
+            lines.append(f"usemtl {mat}")
+            lines += [f"f {a + vo} {b + vo} {c + vo}" for a, b, c in p.faces + 1]
+        vo += len(p.vertices)
+    write_text(path.with_suffix(".mtl"), "\n".join(mtl) + "\n")
+    write_text(path, "\n".join(lines) + "\n")
+    return path

@@ -1,0 +1,103 @@
+"""A typed world-to-camera pose (see :mod:`gtkit.conventions`), validated on construction."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .conventions import (camera_center, dji_to_rotation, quat_to_rotmat, rotation_angle_deg,
+                          rotmat_to_quat, translation_from_center)
+from .errors import GtkitError
+
+
+@dataclass(frozen=True, eq=False)
+class Pose:
+    """World-to-camera rigid transform ``x_cam = R @ x_world + t``.
+
+    ``covariance`` (optional) is 6x6 over (rotation vector, translation) of the
+    world-to-camera pose, as pycolmap reports it.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray | None = None
+
+    def __post_init__(self):
+        R = np.asarray(self.R, dtype=np.float64)
+        t = np.asarray(self.t, dtype=np.float64).reshape(-1)
+        if R.shape != (3, 3) or t.shape != (3,):
+            raise GtkitError(f"pose needs R 3x3 and t 3, got {R.shape} and {t.shape}")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            raise GtkitError("pose has NaN or infinite values")
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-5 or np.linalg.det(R) < 0:
+            raise GtkitError("pose rotation is not orthonormal with det +1")
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "t", t)
+        if self.covariance is not None:
+            c = np.asarray(self.covariance, dtype=np.float64)
+            if c.shape != (6, 6):
+                raise GtkitError(f"pose covariance must be 6x6, got {c.shape}")
+            object.__setattr__(self, "covariance", c)
+
+    @classmethod
+    def identity(cls) -> "Pose":
+        return cls(np.eye(3), np.zeros(3))
+
+    @classmethod
+    def from_qt(cls, q_wxyz, t) -> "Pose":
+        q = np.asarray(q_wxyz, dtype=np.float64)
+        n = np.linalg.norm(q)
+        if not np.isfinite(n) or abs(n - 1.0) > 1e-3:
+            raise GtkitError(f"quaternion is not unit length (|q| = {n:.6g})")
+        return cls(quat_to_rotmat(q / n), t)
+
+    @classmethod
+    def from_center(cls, R, C) -> "Pose":
+        return cls(R, translation_from_center(R, C))
+
+    @classmethod
+    def from_dji(cls, yaw_deg, pitch_deg, roll_deg, C) -> "Pose":
+        R = dji_to_rotation(yaw_deg, pitch_deg, roll_deg)
+        return cls.from_center(R, C)
+
+    @classmethod
+    def from_pycolmap(cls, rigid) -> "Pose":
+        return cls(rigid.rotation.matrix(), rigid.translation)
+
+    def to_pycolmap(self):
+        import pycolmap
+
+        return pycolmap.Rigid3d(pycolmap.Rotation3d(self.R), self.t)
+
+    @property
+    def q(self) -> np.ndarray:
+        return rotmat_to_quat(self.R)
+
+    @property
+    def center(self) -> np.ndarray:
+        return camera_center(self.R, self.t)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """4x4 world-to-camera."""
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.R, self.t
+        return m
+
+    def inverse_matrix(self) -> np.ndarray:
+        """4x4 camera-to-world."""
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.R.T, self.center
+        return m
+
+    def transform(self, points_world: np.ndarray) -> np.ndarray:
+        """World points (N, 3) -> camera frame."""
+        return np.asarray(points_world, dtype=np.float64) @ self.R.T + self.t
+
+    def error_to(self, other: "Pose") -> tuple[float, float]:
+        """(camera-centre distance in metres, rotation geodesic error in degrees)."""
+        return float(np.linalg.norm(self.center - other.center)), rotation_angle_deg(self.R, other.R)
+
+    def __repr__(self):
+        c = self.center
+        return f"Pose(center=[{c[0]:.3f}, {c[1]:.3f}, {c[2]:.3f}], q={np.round(self.q, 6).tolist()})"

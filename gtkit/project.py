@@ -1,0 +1,174 @@
+"""The project folder: ``project.toml``, the one object that owns every path, and stage records.
+
+A project folder looks like::
+
+    site/
+      project.toml            CRS, local origin, cameras, settings overrides
+      images/reference/       oblique photos (EXIF/XMP)
+      images/queries/<seq>/   wide (..._W) and zoom (..._Z) photos
+      model/                  reference textured mesh + offset sidecar
+      gcp_list.txt            ground control points (OpenDroneMap format)
+      tiepoints.json          tie points (see gtkit.io.tiepoints)
+      truth/                  only on sample sites; only evaluation reads it
+      work/<stage>/           each stage's outputs + stage.json (the settings that made them)
+      exports/                dsm.tif, ortho.tif, mesh/, coordinates
+      reports/                gt_report.json, localization.json, tracking.json + readable reports
+
+Stages never invent a path: they ask :class:`Paths`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from .errors import GtkitError
+from .geo import GeoFrame
+from .io.atomic import write_json, write_text
+
+PROJECT_FILE = "project.toml"
+
+
+class Paths:
+    """Every location inside a project folder."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    project_toml = property(lambda s: s.root / PROJECT_FILE)
+    images = property(lambda s: s.root / "images")
+    reference_images = property(lambda s: s.root / "images" / "reference")
+    query_images = property(lambda s: s.root / "images" / "queries")
+    model = property(lambda s: s.root / "model")
+    gcp_list = property(lambda s: s.root / "gcp_list.txt")
+    geo_txt = property(lambda s: s.root / "geo.txt")
+    tiepoints = property(lambda s: s.root / "tiepoints.json")
+    cameras = property(lambda s: s.root / "cameras.txt")  # intrinsics priors, one line per image
+    truth = property(lambda s: s.root / "truth")
+    work = property(lambda s: s.root / "work")
+    exports = property(lambda s: s.root / "exports")
+    reports = property(lambda s: s.root / "reports")
+    review = property(lambda s: s.root / "review.json")  # annotators' accept/reject per image
+
+    def stage(self, name: str) -> Path:
+        return self.work / name
+
+    def query_sequences(self) -> list[str]:
+        if not self.query_images.is_dir():
+            return []
+        return sorted(p.name for p in self.query_images.iterdir() if p.is_dir())
+
+
+@dataclasses.dataclass
+class Project:
+    """A loaded ``project.toml``."""
+
+    paths: Paths
+    frame: GeoFrame
+    name: str = "site"
+    config: dict = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def load(cls, root: str | Path) -> "Project":
+        paths = Paths(root)
+        f = paths.project_toml
+        if not f.is_file():
+            raise GtkitError(f"not a gtkit project ({PROJECT_FILE} missing)", paths.root)
+        try:
+            cfg = tomllib.loads(f.read_text(encoding="utf-8"))
+        except tomllib.TOMLDecodeError as e:
+            raise GtkitError(f"invalid TOML ({e})", f) from None
+        crs = cfg.get("crs", {})
+        if "crs" not in crs:
+            raise GtkitError("[crs] crs = 'EPSG:...' missing", f)
+        origin = crs.get("origin", [0.0, 0.0, 0.0])
+        frame = GeoFrame(str(crs["crs"]), tuple(float(v) for v in origin), source=str(f))
+        return cls(paths, frame, cfg.get("project", {}).get("name", paths.root.name), cfg)
+
+    @classmethod
+    def create(cls, root: str | Path, frame: GeoFrame, name: str = "site", extra: dict | None = None) -> "Project":
+        paths = Paths(root)
+        paths.root.mkdir(parents=True, exist_ok=True)
+        cfg = {"project": {"name": name, "gtkit_version": _version()},
+               "crs": {"crs": frame.crs_spec, "origin": list(frame.origin),
+                       "note": "world = CRS coordinates minus origin; metres; z up; heights as given"}}
+        cfg.update(extra or {})
+        proj = cls(paths, frame, name, cfg)
+        proj.save()
+        return proj
+
+    def save(self) -> None:
+        write_text(self.paths.project_toml, tomli_w.dumps(self.config))
+
+    def section(self, name: str) -> dict:
+        return self.config.get(name, {})
+
+    def record_import(self, kind: str, source: str | Path, **info) -> None:
+        """Remember in project.toml what was imported and from where."""
+        imports = self.config.setdefault("imports", {})
+        imports[kind] = {"source": str(source), "when": time.strftime("%Y-%m-%dT%H:%M:%S"), **info}
+        self.save()
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+# --- stage records: resume when the settings match, recompute when they changed ------------
+
+STAGE_RECORD = "stage.json"
+
+
+def settings_dict(settings: Any) -> dict:
+    if dataclasses.is_dataclass(settings):
+        return json.loads(json.dumps(dataclasses.asdict(settings), default=str))
+    return json.loads(json.dumps(settings or {}, default=str))
+
+
+def settings_key(settings: Any) -> str:
+    blob = json.dumps(settings_dict(settings), sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def stage_done(stage_dir: Path, settings: Any, inputs: dict | None = None) -> bool:
+    """True when ``stage_dir`` holds a finished run made with these settings (and inputs)."""
+    rec = Path(stage_dir) / STAGE_RECORD
+    if not rec.is_file():
+        return False
+    try:
+        data = json.loads(rec.read_text())
+    except json.JSONDecodeError:
+        return False
+    return data.get("key") == settings_key({"settings": settings_dict(settings), "inputs": inputs or {}})
+
+
+def mark_stage_done(stage_dir: Path, settings: Any, inputs: dict | None = None, **summary) -> None:
+    """Write the record that makes a later run with the same settings skip this stage.
+    Call it last, after every output is written."""
+    write_json(Path(stage_dir) / STAGE_RECORD, {
+        "key": settings_key({"settings": settings_dict(settings), "inputs": inputs or {}}),
+        "settings": settings_dict(settings), "inputs": inputs or {},
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary})
+
+
+def clear_stage(stage_dir: Path) -> None:
+    (Path(stage_dir) / STAGE_RECORD).unlink(missing_ok=True)
+
+
+def file_fingerprint(path: Path) -> str:
+    """A cheap identity of an input file (size + mtime + sha of the first MiB)."""
+    path = Path(path)
+    if not path.exists():
+        return "missing"
+    st = path.stat()
+    with open(path, "rb") as f:
+        head = hashlib.sha256(f.read(1 << 20)).hexdigest()[:12]
+    return f"{st.st_size}-{head}"

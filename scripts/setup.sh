@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# One-time (and safe to repeat) set-up of a fresh Debian 12 machine for gtkit:
+# the Debian packages that headless OpenGL (Mesa EGL/llvmpipe) and offscreen Qt need,
+# then a virtual environment in .venv with gtkit and its dependencies.
+# Re-running is cheap: apt is skipped when every package is installed, pip when
+# pyproject.toml has not changed since the last successful install.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+
+APT_PACKAGES=(libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libusb-1.0-0
+              libxkbcommon0 libglib2.0-0 libfontconfig1 libfreetype6 libdbus-1-3)
+missing=()
+for p in "${APT_PACKAGES[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if ((${#missing[@]})); then
+  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  echo "setup: installing Debian packages: ${missing[*]}"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
+fi
+
+PY=${PYTHON:-python3}
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+stamp=.venv/.gtkit-installed
+want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  echo "setup: installing Python dependencies into .venv (about 2 minutes the first time)"
+  .venv/bin/python -m pip install -q --upgrade pip
+  .venv/bin/python -m pip install -q -e '.[test]'
+  echo "$want" > "$stamp"
+fi
