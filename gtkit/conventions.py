@@ -113,8 +113,9 @@ def wrap_deg(a):
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Geodesic angle between two rotations, in degrees."""
-    c = (np.trace(np.asarray(R_a).T @ np.asarray(R_b)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    # via the quaternion of the relative rotation: precise for tiny angles, unlike arccos(trace)
+    rel = Rotation.from_matrix(np.asarray(R_a).T @ np.asarray(R_b))
+    return float(np.degrees(rel.magnitude()))
 
 
 def angle_between_deg(u: np.ndarray, v: np.ndarray) -> float:

@@ -97,19 +97,20 @@ def _part_from_trimesh(g, name: str) -> MeshPart:
     v = np.asarray(g.vertices, dtype=np.float64)
     f = np.asarray(g.faces, dtype=np.int64)
     vis = g.visual
-    if isinstance(vis, trimesh.visual.texture.TextureVisuals) and vis.uv is not None:
-        img = getattr(vis.material, "image", None)
-        if img is None and hasattr(vis.material, "baseColorTexture"):
-            img = vis.material.baseColorTexture
-        if img is not None:
+    if isinstance(vis, trimesh.visual.texture.TextureVisuals):
+        mat = vis.material
+        img = getattr(mat, "image", None)
+        if img is None:
+            img = getattr(mat, "baseColorTexture", None)
+        if img is not None and vis.uv is not None:
             tex = np.asarray(img.convert("RGB"))
             return MeshPart(v, f, uv=np.asarray(vis.uv, dtype=np.float64), texture=tex, name=name)
-        try:
-            vis = vis.to_color()
-        except Exception:  # noqa: BLE001 - a material without image: fall through to grey
-            return MeshPart(v, f, colors=np.full((len(v), 3), 180, np.uint8), name=name)
+        rgb = getattr(mat, "diffuse", None)
+        if rgb is None:
+            rgb = getattr(mat, "main_color", (180, 180, 180, 255))
+        return MeshPart(v, f, colors=np.tile(np.asarray(rgb)[:3].astype(np.uint8), (len(v), 1)), name=name)
     colors = None
-    if hasattr(vis, "vertex_colors") and vis.kind is not None:
+    if getattr(vis, "kind", None) is not None and hasattr(vis, "vertex_colors"):
         colors = np.asarray(vis.vertex_colors)[:, :3].astype(np.uint8)
     if colors is None or len(colors) != len(v):
         colors = np.full((len(v), 3), 180, np.uint8)
@@ -183,11 +184,7 @@ def write_obj(path: str | Path, mesh: Mesh, texture_format: str = "jpg") -> Path
     for i, p in enumerate(mesh.parts):
         mat = f"material_{i:03d}"
         lines.append(f"o {p.name or mat}")
-        if p.colors is not None and p.uv is None:
-            lines += [f"v {x:.4f} {y:.4f} {z:.4f} {r / 255:.4f} {g / 255:.4f} {b / 255:.4f}"
-                      for (x, y, z), (r, g, b) in zip(p.vertices, p.colors)]
-        else:
-            lines += [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in p.vertices]
+        lines += [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in p.vertices]
         if p.uv is not None and p.texture is not None:
             tex_name = f"{path.stem}_{i:03d}.{texture_format}"
             with atomic_path(path.parent / tex_name) as tmp:
@@ -199,7 +196,10 @@ def write_obj(path: str | Path, mesh: Mesh, texture_format: str = "jpg") -> Path
             lines += [f"f {a + vo}/{a + to} {b + vo}/{b + to} {c + vo}/{c + to}" for a, b, c in f]
             to += len(p.uv)
         else:
-            mtl += [f"newmtl {mat}", "Kd 1 1 1", ""]
+            # OBJ has no per-vertex colour with materials: a colour-only part keeps its mean
+            # colour as the material's diffuse colour (use PLY for per-vertex colours)
+            rgb = (p.colors.mean(0) / 255.0) if p.colors is not None else np.full(3, 0.7)
+            mtl += [f"newmtl {mat}", "Kd {:.4f} {:.4f} {:.4f}".format(*rgb), ""]
             lines.append(f"usemtl {mat}")
             lines += [f"f {a + vo} {b + vo} {c + vo}" for a, b, c in p.faces + 1]
         vo += len(p.vertices)
