@@ -8,3 +8,19 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 BRIGHTON = SHARED / "data" / "brighton_beach"
 sys.path.insert(0, str(ROOT))
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def small_sample(tmp_path_factory):
+    """The small sample project, generated once per test session (``gtkit sample create``).
+
+    Tests must treat it as read-only; copy it (or use ``sample_copy``) before running stages
+    that write into it.
+    """
+    from gtkit.cli import main
+
+    root = tmp_path_factory.mktemp("sample") / "small"
+    assert main(["sample", "create", str(root), "--preset", "small", "--seed", "0"]) == 0
+    return root
