@@ -55,6 +55,10 @@ class Paths:
     exports = property(lambda s: s.root / "exports")
     reports = property(lambda s: s.root / "reports")
     review = property(lambda s: s.root / "review.json")  # annotators' accept/reject per image
+    dsm = property(lambda s: s.root / "exports" / "dsm.tif")          # gtkit export dsm
+    ortho = property(lambda s: s.root / "exports" / "ortho.tif")      # gtkit export ortho
+    mesh_export = property(lambda s: s.root / "exports" / "mesh")     # gtkit export mesh
+    coordinates = property(lambda s: s.root / "exports" / "coordinates")  # gtkit export coords
 
     def stage(self, name: str) -> Path:
         return self.work / name
