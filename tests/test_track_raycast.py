@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from gtkit.errors import GtkitError
-from gtkit.track.raycast import HIT, OUTSIDE, SKY, STARTS_BELOW, HeightGrid, cast_rays
+from gtkit.track.raycast import HIT, OUTSIDE, SKY, STARTS_BELOW, cast_rays, dsm_from_array
 
 
 def _grid(fn, size=200.0, cell=0.5):
@@ -13,7 +13,7 @@ def _grid(fn, size=200.0, cell=0.5):
     xc = x0 + (np.arange(n) + 0.5) * cell
     yc = y0 - (np.arange(n) + 0.5) * cell
     X, Y = np.meshgrid(xc, yc)
-    return HeightGrid(fn(X, Y), x0, y0, cell, cell)
+    return dsm_from_array(fn(X, Y), x0, y0, cell)
 
 
 def test_plane_and_slope_exact_to_centimetres():
@@ -47,7 +47,7 @@ def test_first_crossing_is_the_building_not_the_ground_behind():
     x, z = hit.points[0, 0], hit.points[0, 2]
     assert 19.7 < x < 20.8 and 24.5 < z < 25.5, (x, z)
     # the point lies on the ray and on the surface to centimetres
-    assert abs(z - g.sample(x, 0.0)) < 0.05
+    assert abs(z - g.height_at(x, 0.0)) < 0.05
     # a ray that clears the front edge but meets the roof (z = 30 at x = 25), not the ground at x = 325
     graze = cast_rays(g, [0, 0, 32.5], [1, 0, -0.1])
     assert graze.ok[0] and 24.5 < graze.points[0, 0] < 26.0 and abs(graze.points[0, 2] - 30) < 0.1
@@ -76,10 +76,24 @@ def test_misses_give_a_status_and_no_coordinate():
         cast_rays(g, [0, 0, 100], [0, 0, 0])
 
 
-def test_from_affine_subtracts_the_local_origin():
-    h = np.full((4, 5), 110.0)
-    g = HeightGrid.from_affine(h, (2.0, 0, 500010.0, 0, -2.0, 4000008.0), origin=(500000, 4000000, 100))
-    assert g.x0 == 10.0 and g.y0 == 8.0 and g.dx == 2.0 and g.dy == 2.0
-    assert np.isclose(g.sample(13.0, 5.0), 10.0)
-    r = cast_rays(g, [13.0, 5.0, 50.0], [0, 0, -1])
-    assert r.status[0] == HIT and abs(r.points[0, 2] - 10.0) < 0.01
+def test_reads_a_real_dsm_geotiff_in_the_project_frame(tmp_path):
+    """A GeoTIFF in a UTM CRS with a local origin: the ray is cast in the world frame."""
+    import rasterio
+    from rasterio.transform import Affine
+
+    from gtkit.export.dsm import Dsm
+    from gtkit.geo import GeoFrame
+
+    frame = GeoFrame("EPSG:32650", (500000.0, 4000000.0, 100.0))
+    h = np.full((40, 50), 110.0, np.float32)
+    h[10:20, 20:30] = 140.0  # a 20 m x 20 m, 30 m tall block
+    h[0, 0] = -9999.0
+    path = tmp_path / "dsm.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=50, height=40, count=1, dtype="float32",
+                       crs="EPSG:32650", transform=Affine(2.0, 0, 500000.0, 0, -2.0, 4000080.0),
+                       nodata=-9999.0) as dst:
+        dst.write(h, 1)
+    dsm = Dsm.open(path, frame)
+    r = cast_rays(dsm, [[55.0, 50.0, 100.0], [5.0, 5.0, 100.0]], [0, 0, -1])
+    assert list(r.status) == [HIT, HIT]
+    assert abs(r.points[0, 2] - 40.0) < 0.02 and abs(r.points[1, 2] - 10.0) < 0.02

@@ -7,8 +7,9 @@ changes from > 0 to <= 0, and refine only inside that bracketing step by bisecti
 ``tol`` metres along the ray. A plain bisection over the whole ray could converge to any
 crossing (e.g. the ground behind a building); marching first cannot.
 
-Heights are sampled bilinearly between cell centres; cells with no data (NaN) count as "no
-surface" (the ray may pass over them). Every ray gets a status:
+Heights come from the DSM reader of the export stage (:class:`gtkit.export.dsm.Dsm`,
+bilinear between cell centres); cells with no data (NaN) count as "no surface" (the ray may
+pass over them). This module adds the vectorised marcher (many rays at once) and the statuses. Every ray gets a status:
 
 ``hit``        the first crossing was found (``point`` is finite);
 ``sky``        the ray does not descend and starts above every DSM height: it never meets it;
@@ -35,86 +36,28 @@ MESSAGES = {
 }
 
 
-@dataclass
-class HeightGrid:
-    """Heights on a regular north-up grid in the world frame (see :mod:`gtkit.conventions`).
+def surface_range(dsm) -> tuple[float, float]:
+    """(lowest, highest) height of a DSM (cached on the object)."""
+    r = getattr(dsm, "_gtkit_track_zrange", None)
+    if r is None:
+        v = dsm.heights[np.isfinite(dsm.heights)]
+        if not len(v):
+            raise GtkitError("the DSM has no valid cell", getattr(dsm, "path", None))
+        r = (float(v.min()), float(v.max()))
+        dsm._gtkit_track_zrange = r
+    return r
 
-    ``heights[i, j]`` is the height at the centre of the cell covering
-    x in [x0 + j*dx, x0 + (j+1)*dx], y in [y0 - (i+1)*dy, y0 - i*dy] (row 0 = north edge,
-    as in a GeoTIFF). NaN = no data.
-    """
 
-    heights: np.ndarray   # (H, W) float
-    x0: float             # west edge (world x)
-    y0: float             # north edge (world y)
-    dx: float             # cell size east (m)
-    dy: float             # cell size north (m), positive
+def dsm_from_array(heights, xmin: float, ymax: float, res: float, frame=None):
+    """A :class:`gtkit.export.dsm.Dsm` from a numpy grid (row 0 = north, world frame), for
+    synthetic tests and benchmarks."""
+    from ..export.dsm import Dsm
+    from ..export.grid import Grid
+    from ..geo import GeoFrame
 
-    def __post_init__(self):
-        self.heights = np.asarray(self.heights, dtype=np.float64)
-        if self.heights.ndim != 2 or min(self.heights.shape) < 2:
-            raise GtkitError(f"height grid must be 2D with at least 2x2 cells, got {self.heights.shape}")
-        if not (self.dx > 0 and self.dy > 0):
-            raise GtkitError(f"height grid cell size must be positive, got {self.dx}, {self.dy}")
-        valid = np.isfinite(self.heights)
-        if not valid.any():
-            raise GtkitError("height grid has no valid cell")
-        self.hmin = float(self.heights[valid].min())
-        self.hmax = float(self.heights[valid].max())
-
-    @classmethod
-    def from_affine(cls, heights, transform, origin=(0.0, 0.0, 0.0), nodata=None) -> "HeightGrid":
-        """From a rasterio-style affine (a, b, c, d, e, f) in CRS coordinates; ``origin`` is the
-        project's local origin (subtracted from x, y and the heights). Rotated grids are refused."""
-        a, b, c, d, e, f = (float(v) for v in tuple(transform)[:6])
-        if abs(b) > 1e-12 or abs(d) > 1e-12 or e >= 0:
-            raise GtkitError("only north-up rasters (no rotation, row 0 = north) are supported")
-        h = np.asarray(heights, dtype=np.float64).copy()
-        if nodata is not None and np.isfinite(nodata):
-            h[h == nodata] = np.nan
-        ox, oy, oz = (float(v) for v in origin)
-        return cls(h - oz, c - ox, f - oy, a, -e)
-
-    @property
-    def shape(self):
-        return self.heights.shape
-
-    @property
-    def cell(self) -> float:
-        return min(self.dx, self.dy)
-
-    def bounds(self) -> tuple[float, float, float, float]:
-        """(xmin, ymin, xmax, ymax) of the cell centres (where bilinear sampling is defined)."""
-        H, W = self.heights.shape
-        return (self.x0 + 0.5 * self.dx, self.y0 - (H - 0.5) * self.dy,
-                self.x0 + (W - 0.5) * self.dx, self.y0 - 0.5 * self.dy)
-
-    def sample(self, x, y) -> np.ndarray:
-        """Bilinear height at world (x, y); NaN outside the grid of cell centres or where all four
-        neighbours have no data (neighbours without data are left out of the weights)."""
-        x = np.asarray(x, dtype=np.float64)
-        y = np.asarray(y, dtype=np.float64)
-        H, W = self.heights.shape
-        fc = (x - self.x0) / self.dx - 0.5   # continuous column (0 = first cell centre)
-        fr = (self.y0 - y) / self.dy - 0.5   # continuous row
-        inside = (fc >= 0) & (fc <= W - 1) & (fr >= 0) & (fr <= H - 1)
-        fc = np.clip(np.where(inside, fc, 0.0), 0, W - 1)
-        fr = np.clip(np.where(inside, fr, 0.0), 0, H - 1)
-        c0 = np.minimum(np.floor(fc).astype(np.int64), W - 2)
-        r0 = np.minimum(np.floor(fr).astype(np.int64), H - 2)
-        tc, tr = fc - c0, fr - r0
-        hz = self.heights
-        acc = np.zeros(x.shape)
-        wsum = np.zeros(x.shape)
-        for dr, dc, w in ((0, 0, (1 - tr) * (1 - tc)), (0, 1, (1 - tr) * tc),
-                          (1, 0, tr * (1 - tc)), (1, 1, tr * tc)):
-            v = hz[r0 + dr, c0 + dc]
-            ok = np.isfinite(v)
-            acc += np.where(ok, v * w, 0.0)
-            wsum += np.where(ok, w, 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out = np.where((wsum <= 1e-12) | ~inside, np.nan, acc / wsum)
-        return out if out.ndim else float(out)
+    h = np.asarray(heights, dtype=np.float64)
+    frame = frame or GeoFrame("EPSG:32633", (0.0, 0.0, 0.0))
+    return Dsm(h, Grid(float(xmin), float(ymax), float(res), h.shape[1], h.shape[0]), frame)
 
 
 @dataclass
@@ -150,9 +93,10 @@ def _box_interval(o, d, lo, hi):
     return s0, s1
 
 
-def cast_rays(grid: HeightGrid, origins, directions, *, step: float | None = None, tol: float = 0.01,
+def cast_rays(dsm, origins, directions, *, step: float | None = None, tol: float = 0.01,
               max_distance: float = 20000.0, block: int = 64, chunk: int = 8192) -> RayHits:
-    """First crossing of each ray with the height grid.
+    """First crossing of each ray with the DSM (a :class:`gtkit.export.dsm.Dsm`: its
+    ``height_at`` sampler, ``heights`` and ``grid`` are used).
 
     ``step`` (metres along the ray) defaults to half the smaller cell size and is capped at it;
     ``tol`` is the bisection tolerance along the ray (default 1 cm). Rays are processed
@@ -167,36 +111,37 @@ def cast_rays(grid: HeightGrid, origins, directions, *, step: float | None = Non
     if not np.all(np.isfinite(o)) or not np.all(np.isfinite(d)) or np.any(norm == 0):
         raise GtkitError("ray origins/directions must be finite and directions non-zero")
     o, d = o.copy(), d / norm
-    parts = [_cast_chunk(grid, o[i:i + chunk], d[i:i + chunk], step, tol, max_distance, block)
-             for i in range(0, len(o), chunk)] or [_cast_chunk(grid, o, d, step, tol, max_distance, block)]
+    parts = [_cast_chunk(dsm, o[i:i + chunk], d[i:i + chunk], step, tol, max_distance, block)
+             for i in range(0, len(o), chunk)] or [_cast_chunk(dsm, o, d, step, tol, max_distance, block)]
     return RayHits(np.concatenate([p.points for p in parts]), np.concatenate([p.distance for p in parts]),
                    np.concatenate([p.status for p in parts]))
 
 
-def _cast_chunk(grid, o, d, step, tol, max_distance, block) -> RayHits:
+def _cast_chunk(dsm, o, d, step, tol, max_distance, block) -> RayHits:
     n = len(o)
-    half = 0.5 * grid.cell
+    g = dsm.grid
+    zmin, zmax = surface_range(dsm)
+    half = 0.5 * g.res
     step = half if step is None else min(float(step), half)
     pts = np.full((n, 3), np.nan)
     dist = np.full(n, np.nan)
     status = np.full(n, OUTSIDE, dtype=object)
 
-    xmin, ymin, xmax, ymax = grid.bounds()
-    lo = np.array([xmin, ymin, grid.hmin - 1.0])
-    hi = np.array([xmax, ymax, grid.hmax + 1e-6])
+    lo = np.array([g.xmin, g.ymin, zmin - 1.0])
+    hi = np.array([g.xmax, g.ymax, zmax + 1e-6])
     s0, s1 = _box_interval(o, d, lo, hi)
     s1 = np.minimum(s1, max_distance)
 
-    h0 = grid.sample(o[:, 0], o[:, 1])
+    h0 = dsm.height_at(o[:, 0], o[:, 1])
     below = np.isfinite(h0) & (o[:, 2] < h0)
     status[below] = STARTS_BELOW
-    sky = (d[:, 2] >= 0) & (o[:, 2] > grid.hmax) & ~below
+    sky = (d[:, 2] >= 0) & (o[:, 2] > zmax) & ~below
     status[sky] = SKY
 
     active = np.where(~below & ~sky & (s1 > s0))[0]
     if len(active):
         s_prev = s0[active].copy()
-        f_prev = _f(grid, o[active], d[active], s_prev)
+        f_prev = _f(dsm, o[active], d[active], s_prev)
         # f_prev NaN (no data) counts as above the surface; starting in the box but under the
         # surface is the "starts below" case handled above, or a hit right at s0
         at_start = np.isfinite(f_prev) & (f_prev <= 0)
@@ -213,7 +158,7 @@ def _cast_chunk(grid, o, d, step, tol, max_distance, block) -> RayHits:
             s = s_prev[:, None] + step * ks[None, :]                      # (m, block)
             s = np.minimum(s, s1[active, None])
             P = oa[:, None, :] + s[..., None] * da[:, None, :]
-            f = P[..., 2] - grid.sample(P[..., 0], P[..., 1])
+            f = P[..., 2] - dsm.height_at(P[..., 0], P[..., 1])
             crossed = np.isfinite(f) & (f <= 0)
             any_c = crossed.any(axis=1)
             if any_c.any():
@@ -221,7 +166,7 @@ def _cast_chunk(grid, o, d, step, tol, max_distance, block) -> RayHits:
                 k = crossed[rows].argmax(axis=1)
                 sb = s[rows, k]
                 sa = np.where(k > 0, s[rows, np.maximum(k - 1, 0)], s_prev[rows])
-                sh = _bisect(grid, oa[rows], da[rows], sa, sb, tol)
+                sh = _bisect(dsm, oa[rows], da[rows], sa, sb, tol)
                 idx = active[rows]
                 dist[idx] = sh
                 pts[idx] = o[idx] + sh[:, None] * d[idx]
@@ -232,18 +177,18 @@ def _cast_chunk(grid, o, d, step, tol, max_distance, block) -> RayHits:
     return RayHits(pts, dist, status)
 
 
-def _f(grid, o, d, s):
+def _f(dsm, o, d, s):
     p = o + s[:, None] * d
-    return p[:, 2] - grid.sample(p[:, 0], p[:, 1])
+    return p[:, 2] - dsm.height_at(p[:, 0], p[:, 1])
 
 
-def _bisect(grid, o, d, sa, sb, tol):
+def _bisect(dsm, o, d, sa, sb, tol):
     """Shrink [sa, sb] (f(sa) > 0 or no data, f(sb) <= 0) to ``tol``; returns the crossing s."""
     sa, sb = sa.copy(), sb.copy()
     n_iter = int(np.ceil(np.log2(max((sb - sa).max(), tol) / tol))) + 1
     for _ in range(n_iter):
         sm = 0.5 * (sa + sb)
-        fm = _f(grid, o, d, sm)
+        fm = _f(dsm, o, d, sm)
         below = np.isfinite(fm) & (fm <= 0)
         sb = np.where(below, sm, sb)
         sa = np.where(below, sa, sm)
