@@ -1,0 +1,117 @@
+"""``gtkit export dsm|ortho|mesh|coords``: surveyor outputs in the project CRS (see gtkit.export).
+
+Examples::
+
+    gtkit export dsm site [--resolution 0.5] [--cog]
+    gtkit export dsm --input model.laz --crs EPSG:32615 --out dsm.tif     # a file outside a project
+    gtkit export ortho site [--resolution 0.1]
+    gtkit export mesh site --format glb [--decimate 200000]
+    gtkit export coords site [--poses work/pseudo_gt/poses.txt] [--targets tracks.csv]
+"""
+from __future__ import annotations
+
+
+def _offset(text):
+    from ..errors import GtkitError
+
+    try:
+        v = [float(s) for s in text.replace(",", " ").split()]
+    except ValueError:
+        v = []
+    if len(v) != 3:
+        raise GtkitError(f"--offset needs three numbers 'E,N,H', got {text!r}")
+    return v
+
+
+def _source_args(p, raster: bool):
+    p.add_argument("project", nargs="?", help="project folder (optional with --input and --out)")
+    p.add_argument("--input", help="mesh (.obj/.ply/.glb) or point cloud (.las/.laz/.ply) instead of the "
+                   "project's model/reference.obj")
+    p.add_argument("--crs", help="CRS of --input when it has no sidecar/header CRS, e.g. EPSG:32615")
+    p.add_argument("--offset", help="'E,N,H' added to --input's coordinates when it has no sidecar")
+    if raster:
+        p.add_argument("--resolution", type=float, help="metres per cell (default: from the model's detail; "
+                       "never finer than it)")
+        p.add_argument("--cog", action="store_true", help="write a cloud-optimised GeoTIFF")
+        p.add_argument("--out", help="output GeoTIFF (default: exports/<product>.tif in the project)")
+
+
+def register(sub):
+    p = sub.add_parser("export", help="DSM / orthophoto GeoTIFFs, textured mesh, coordinates in the project CRS")
+    ex = p.add_subparsers(dest="export_what", metavar="WHAT", required=True)
+
+    d = ex.add_parser("dsm", help="digital surface model GeoTIFF (highest surface per cell)")
+    _source_args(d, raster=True)
+    d.add_argument("--fill-holes", type=int, default=2, help="passes of small-hole filling (0 = none)")
+    d.set_defaults(func=run_dsm)
+
+    o = ex.add_parser("ortho", help="true orthophoto GeoTIFF (RGB + alpha) of the textured model")
+    _source_args(o, raster=True)
+    o.set_defaults(func=run_ortho)
+
+    m = ex.add_parser("mesh", help="textured mesh in the project CRS + offset sidecar")
+    _source_args(m, raster=False)
+    m.add_argument("--format", choices=("obj", "ply", "glb"), default="obj")
+    m.add_argument("--decimate", type=int, help="target number of triangles (pymeshlab)")
+    m.add_argument("--out-dir", help="output folder (default: exports/mesh)")
+    m.set_defaults(func=run_mesh)
+
+    c = ex.add_parser("coords", help="camera poses and targets as CSV / GeoJSON (WGS84 + CRS) and ODM geo.txt")
+    c.add_argument("project")
+    c.add_argument("--poses", help="pose file (default: the pseudo-GT poses under work/ if present)")
+    c.add_argument("--targets", help="targets CSV (x,y,z | easting,northing,height | lon,lat,height columns)")
+    c.add_argument("--no-gcps", action="store_true", help="do not export gcp_list.txt's points")
+    c.add_argument("--out-dir", help="output folder (default: exports/coordinates)")
+    c.set_defaults(func=run_coords)
+
+
+def _need_project_or_out(args):
+    from ..errors import GtkitError
+
+    if args.project is None and (args.input is None or getattr(args, "out", None) is None):
+        raise GtkitError("give a project folder, or --input and --out for a file outside a project")
+
+
+def run_dsm(args):
+    from ..export import dsm
+
+    _need_project_or_out(args)
+    s = dsm.DsmSettings(resolution=args.resolution, cog=args.cog, fill_holes=args.fill_holes)
+    off = _offset(args.offset) if args.offset else None
+    if args.project is None:
+        out = dsm.run_file(args.input, args.out, s, args.crs, off)
+    else:
+        out = dsm.run(args.project, s, args.input, args.crs, off, args.out)
+    print(out)
+
+
+def run_ortho(args):
+    from ..export import ortho
+
+    _need_project_or_out(args)
+    s = ortho.OrthoSettings(resolution=args.resolution, cog=args.cog)
+    off = _offset(args.offset) if args.offset else None
+    if args.project is None:
+        out = ortho.run_file(args.input, args.out, s, args.crs, off)
+    else:
+        out = ortho.run(args.project, s, args.input, args.crs, off, args.out)
+    print(out)
+
+
+def run_mesh(args):
+    from ..errors import GtkitError
+    from ..export import mesh_export
+
+    if args.project is None:
+        raise GtkitError("gtkit export mesh needs a project folder (its CRS and origin)")
+    s = mesh_export.MeshExportSettings(format=args.format, decimate=args.decimate)
+    print(mesh_export.run(args.project, s, args.input, args.crs, _offset(args.offset) if args.offset else None,
+                          args.out_dir))
+
+
+def run_coords(args):
+    from ..export import coordinates
+
+    s = coordinates.CoordinatesSettings(poses=args.poses, targets=args.targets, include_gcps=not args.no_gcps)
+    for path in coordinates.run(args.project, s, args.out_dir).values():
+        print(path)

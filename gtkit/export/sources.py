@@ -1,0 +1,92 @@
+"""Where an export's surface comes from: the project's reference model, or a file given
+explicitly (a mesh, or a LAS/LAZ/PLY point cloud) with its CRS from a sidecar, the file's
+header, or the command line.
+
+Georeference is never guessed: a file without one, or whose CRS differs from the project's,
+is a one-line :class:`~gtkit.errors.GtkitError` naming the file.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GtkitError
+from ..geo import GeoFrame, crs_name, parse_crs
+from ..io.mesh import MESH_SUFFIXES, load_model, read_offset_sidecar, sidecar_path
+from ..project import Paths
+from .surface import POINT_SUFFIXES, MeshSurface, PointSurface, read_point_cloud
+
+REFERENCE_MODEL = "reference.obj"
+
+
+def reference_model(paths: Paths) -> Path:
+    """The project's reference textured mesh: ``model/reference.obj``, else the only mesh in model/."""
+    p = paths.model / REFERENCE_MODEL
+    if p.is_file():
+        return p
+    found = sorted(f for f in paths.model.glob("*") if f.suffix.lower() in MESH_SUFFIXES) if paths.model.is_dir() else []
+    if len(found) == 1:
+        return found[0]
+    if not found:
+        raise GtkitError(f"no reference model (expected {REFERENCE_MODEL} or one mesh file); give --input", paths.model)
+    raise GtkitError(f"several meshes ({', '.join(f.name for f in found)}); give --input", paths.model)
+
+
+def is_point_cloud(path: Path) -> bool:
+    s = path.suffix.lower()
+    if s in (".las", ".laz"):
+        return True
+    if s == ".ply":  # a PLY may be a mesh or points: look for faces in the header
+        with open(path, "rb") as f:
+            head = f.read(4096).split(b"end_header")[0].decode("latin-1")
+        return not any(line.startswith("element face") and line.split()[-1] != "0" for line in head.splitlines())
+    return False
+
+
+def input_fingerprint_paths(path: Path) -> list[Path]:
+    return [path, sidecar_path(path)]
+
+
+def load_surface(path: str | Path, frame: GeoFrame | None = None, crs: str | None = None,
+                 offset=None) -> tuple[MeshSurface | PointSurface, GeoFrame]:
+    """A surface source in the world frame of ``frame``.
+
+    Without a frame (a file outside a project) one is made from the file's CRS (or ``crs``)
+    with an origin at the data's minimum corner rounded to whole metres.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise GtkitError("input not found", path)
+    suffix = path.suffix.lower()
+    if suffix not in POINT_SUFFIXES and suffix not in MESH_SUFFIXES:
+        raise GtkitError(f"not a mesh or point cloud (expected {', '.join(MESH_SUFFIXES + POINT_SUFFIXES)})", path)
+    if is_point_cloud(path):
+        cloud = read_point_cloud(path, offset=offset)
+        file_crs = cloud.crs
+        if file_crs is not None and crs is not None and not parse_crs(crs, path).equals(parse_crs(file_crs, path)):
+            raise GtkitError(f"file states CRS {file_crs} but --crs {crs} was given", path)
+        use_crs = file_crs or crs
+        if use_crs is None:
+            raise GtkitError("point cloud has no georeference: its header/sidecar states no CRS; give --crs", path)
+        if frame is None:
+            frame = GeoFrame(crs_name(parse_crs(use_crs, path)), _origin_of(cloud.xyz), source=str(path))
+        elif not parse_crs(use_crs, path).equals(frame.crs):
+            raise GtkitError(f"point cloud CRS {use_crs} does not match the project CRS {frame.crs_spec}", path)
+        return PointSurface(frame.crs_to_local(cloud.xyz), cloud.rgb), frame
+    if frame is None:
+        side = read_offset_sidecar(path)
+        use_crs = side[0] if side is not None else crs
+        if use_crs is None:
+            raise GtkitError("mesh has no georeference: write a .offset.json sidecar or give --crs and --offset", path)
+        off = side[1] if side is not None else np.asarray(offset if offset is not None else (0, 0, 0), float)
+        raw = load_model(path, None, use_crs, off)
+        frame = GeoFrame(crs_name(parse_crs(use_crs, path)), _origin_of(raw.bounds()), source=str(path))
+        return MeshSurface(raw.translated(-np.asarray(frame.origin))), frame
+    return MeshSurface(load_model(path, frame, crs, offset)), frame
+
+
+def _origin_of(xyz: np.ndarray) -> tuple[float, float, float]:
+    lo = np.asarray(xyz).min(0)
+    return tuple(float(math.floor(v)) for v in lo)

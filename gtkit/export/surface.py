@@ -1,0 +1,255 @@
+"""Surface samples -> a height (and colour) grid: the one rasteriser behind the DSM and ortho.
+
+Two kinds of source give "the highest surface per cell":
+
+* :class:`MeshSurface`: a (textured) mesh, rendered top-down by the shared orthographic renderer
+  (:meth:`gtkit.render.renderer.Renderer.render_ortho`); each cell holds the highest surface at
+  its centre, and its colour there.
+* :class:`PointSurface`: a point cloud (LAS/LAZ or PLY); each cell holds its highest point
+  (and that point's colour).
+
+:func:`rasterize_surface` takes either and returns a :class:`SurfaceRaster` on a
+:class:`gtkit.export.grid.Grid`; :func:`fill_small_holes` closes isolated empty cells.
+Everything here is in the world frame (CRS minus the project origin).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GtkitError
+from ..io.mesh import Mesh
+from .grid import Grid
+
+log = logging.getLogger(__name__)
+
+POINT_SUFFIXES = (".las", ".laz", ".ply")
+
+
+@dataclass
+class SurfaceRaster:
+    height: np.ndarray          # (H, W) float32 world z, NaN = no surface
+    rgb: np.ndarray | None      # (H, W, 3) uint8 or None
+    grid: Grid
+
+
+class MeshSurface:
+    """A mesh in the world frame as a surface source."""
+
+    kind = "mesh"
+
+    def __init__(self, mesh: Mesh):
+        if not mesh.parts:
+            raise GtkitError("mesh has no parts")
+        self.mesh = mesh
+
+    def bounds(self) -> np.ndarray:
+        return self.mesh.bounds()
+
+    def edge_length(self) -> float:
+        """Median 3-D triangle edge length (metres)."""
+        e = []
+        for p in self.mesh.parts:
+            v = p.vertices[p.faces]
+            e.append(np.linalg.norm(v[:, [1, 2, 0]] - v, axis=2).ravel())
+        return float(np.median(np.concatenate(e)))
+
+    def texel_size(self) -> float | None:
+        """Median ground size of one texel (metres) over textured, non-degenerate triangles."""
+        sizes = []
+        for p in self.mesh.parts:
+            if p.texture is None or p.uv is None:
+                continue
+            th, tw = p.texture.shape[:2]
+            v = p.vertices[p.faces]
+            a3 = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+            t = p.uv[p.faces] * np.array([tw, th])
+            d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+            a2 = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+            ok = (a2 > 1e-9) & (a3 > 1e-12)
+            sizes.append(np.sqrt(a3[ok] / a2[ok]))
+        sizes = np.concatenate(sizes) if sizes else np.zeros(0)
+        return float(np.median(sizes)) if len(sizes) else None
+
+    def detail(self) -> float:
+        """The finest ground detail the model carries: its texel size when textured (what the
+        photogrammetry resolved), otherwise half its median edge length."""
+        t = self.texel_size()
+        return t if t is not None else 0.5 * self.edge_length()
+
+    def rasterize(self, grid: Grid, with_rgb: bool) -> SurfaceRaster:
+        from ..render.renderer import Renderer
+
+        r = Renderer(self.mesh)
+        try:
+            res = r.render_ortho(grid.xmin, grid.ymin, grid.xmax, grid.ymax, grid.res, with_rgb=with_rgb)
+        finally:
+            r.release()
+        if res.depth.shape != grid.shape:  # render_ortho rounds the extent; the grid is whole cells
+            raise GtkitError(f"orthographic render gave {res.depth.shape}, expected {grid.shape}")
+        return SurfaceRaster(res.depth.astype(np.float32), res.rgb, grid)
+
+
+class PointSurface:
+    """A point cloud in the world frame as a surface source."""
+
+    kind = "points"
+
+    def __init__(self, xyz: np.ndarray, rgb: np.ndarray | None = None):
+        xyz = np.asarray(xyz, dtype=np.float64)
+        ok = np.all(np.isfinite(xyz), axis=1)
+        if ok.sum() == 0:
+            raise GtkitError("point cloud has no finite points")
+        self.xyz = xyz[ok]
+        self.rgb = None if rgb is None else np.asarray(rgb, np.uint8)[ok]
+
+    def bounds(self) -> np.ndarray:
+        return np.stack([self.xyz.min(0), self.xyz.max(0)])
+
+    def spacing(self) -> float:
+        """Mean horizontal point spacing over the occupied area (metres)."""
+        b = self.bounds()
+        n = len(self.xyz)
+        area = max((b[1, 0] - b[0, 0]) * (b[1, 1] - b[0, 1]), 1e-6)
+        cell = 4.0 * np.sqrt(area / n)
+        g = Grid.covering(b[0, 0], b[0, 1], b[1, 0], b[1, 1], cell)
+        i, j, _ = g.cell_of(self.xyz[:, 0], self.xyz[:, 1])
+        occupied = len(np.unique(np.clip(i, 0, g.height - 1) * g.width + np.clip(j, 0, g.width - 1)))
+        return float(np.sqrt(occupied * cell * cell / n))
+
+    def detail(self) -> float:
+        return self.spacing()
+
+    def rasterize(self, grid: Grid, with_rgb: bool) -> SurfaceRaster:
+        i, j, inside = grid.cell_of(self.xyz[:, 0], self.xyz[:, 1])
+        cell = (i * grid.width + j)[inside]
+        z = self.xyz[inside, 2]
+        order = np.lexsort((z, cell))                         # by cell, then by height
+        cell_sorted = cell[order]
+        last = np.flatnonzero(np.r_[cell_sorted[1:] != cell_sorted[:-1], True])  # highest of each cell
+        top = order[last]
+        height = np.full(grid.width * grid.height, np.nan, np.float32)
+        height[cell[top]] = z[top]
+        rgb = None
+        if with_rgb:
+            rgb = np.zeros((grid.width * grid.height, 3), np.uint8)
+            if self.rgb is not None:
+                rgb[cell[top]] = self.rgb[inside][top]
+            else:
+                rgb[cell[top]] = 180
+            rgb = rgb.reshape(grid.height, grid.width, 3)
+        return SurfaceRaster(height.reshape(grid.shape), rgb, grid)
+
+
+def rasterize_surface(source: MeshSurface | PointSurface, grid: Grid, *, with_rgb: bool = False,
+                      fill_passes: int = 0) -> SurfaceRaster:
+    """The highest surface per cell of ``grid`` from a mesh or a point cloud (NaN where empty),
+    optionally with small holes filled (see :func:`fill_small_holes`)."""
+    out = source.rasterize(grid, with_rgb)
+    if fill_passes > 0:
+        out.height, out.rgb = fill_small_holes(out.height, out.rgb, fill_passes)
+    return out
+
+
+def fill_small_holes(height: np.ndarray, rgb: np.ndarray | None, passes: int,
+                     min_neighbours: int = 5) -> tuple[np.ndarray, np.ndarray | None]:
+    """Fill empty cells that have at least ``min_neighbours`` of their 8 neighbours filled with
+    the mean of those neighbours, ``passes`` times. With 5 of 8 a hole up to about 2*passes cells
+    across closes, while the outer border of the data (at most 3 filled neighbours along a
+    straight edge) does not grow."""
+    from scipy.ndimage import convolve
+
+    h = height.astype(np.float32, copy=True)
+    c = None if rgb is None else rgb.astype(np.float32)
+    k = np.ones((3, 3), np.float32)
+    k[1, 1] = 0
+    for _ in range(passes):
+        empty = ~np.isfinite(h)
+        if not empty.any():
+            break
+        valid = (~empty).astype(np.float32)
+        n = convolve(valid, k, mode="constant")
+        s = convolve(np.where(empty, 0, h), k, mode="constant")
+        fill = empty & (n >= min_neighbours)
+        if not fill.any():
+            break
+        if c is not None:
+            for b in range(3):
+                sb = convolve(c[..., b] * valid, k, mode="constant")
+                c[..., b][fill] = sb[fill] / n[fill]
+        h[fill] = s[fill] / n[fill]
+    return h, (None if c is None else np.clip(np.rint(c), 0, 255).astype(np.uint8))
+
+
+# --- reading point clouds ---------------------------------------------------------------
+
+
+@dataclass
+class PointCloud:
+    xyz: np.ndarray            # (N, 3) float64 CRS coordinates
+    rgb: np.ndarray | None     # (N, 3) uint8
+    crs: str | None            # as stated by the file (LAS GeoKeys/WKT or sidecar), None if unstated
+
+
+def read_point_cloud(path: str | Path, offset=None) -> PointCloud:
+    """A LAS/LAZ (laspy) or PLY point cloud in CRS coordinates.
+
+    LAS/LAZ carry their CRS in the header; a PLY takes CRS and offset from the
+    ``<file>.offset.json`` sidecar (see :mod:`gtkit.io.mesh`) or from ``offset``."""
+    from ..geo import crs_name
+    from ..io.mesh import read_offset_sidecar
+
+    path = Path(path)
+    if not path.is_file():
+        raise GtkitError("point cloud not found", path)
+    suffix = path.suffix.lower()
+    if suffix in (".las", ".laz"):
+        import laspy
+
+        try:
+            las = laspy.read(str(path))
+        except Exception as e:  # noqa: BLE001 - laspy raises many types; all mean "unreadable"
+            raise GtkitError(f"not a readable LAS/LAZ file ({type(e).__name__}: {str(e)[:120]})", path) from None
+        xyz = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1).astype(np.float64)
+        rgb = None
+        if {"red", "green", "blue"} <= set(las.point_format.dimension_names):
+            c = np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)], axis=1)
+            rgb = (c >> 8 if c.max() > 255 else c).astype(np.uint8)
+        try:
+            crs = las.header.parse_crs()
+        except Exception:  # noqa: BLE001 - malformed GeoKeys: treat as "no CRS stated"
+            log.warning("%s: could not parse the CRS in the LAS header", path)
+            crs = None
+        cloud = PointCloud(xyz, rgb, crs_name(crs) if crs is not None else None)
+        if offset is not None:
+            cloud.xyz = cloud.xyz + np.asarray(offset, float)
+    elif suffix == ".ply":
+        import trimesh
+
+        try:
+            pc = trimesh.load(str(path), process=False)
+        except Exception as e:  # noqa: BLE001
+            raise GtkitError(f"not a readable PLY ({type(e).__name__}: {str(e)[:120]})", path) from None
+        xyz = np.asarray(pc.vertices, dtype=np.float64)
+        rgb = None
+        cols = getattr(pc, "colors", None)
+        if cols is None and hasattr(pc, "visual"):
+            cols = getattr(pc.visual, "vertex_colors", None)
+        if cols is not None and len(cols) == len(xyz):
+            rgb = np.asarray(cols)[:, :3].astype(np.uint8)
+        side = read_offset_sidecar(path)
+        crs = None
+        if side is not None:
+            crs, off = side
+            xyz = xyz + off
+        elif offset is not None:
+            xyz = xyz + np.asarray(offset, float)
+        cloud = PointCloud(xyz, rgb, crs)
+    else:
+        raise GtkitError(f"not a point cloud (expected one of {', '.join(POINT_SUFFIXES)})", path)
+    if len(cloud.xyz) == 0:
+        raise GtkitError("point cloud holds no points", path)
+    return cloud
