@@ -1,0 +1,214 @@
+"""The annotator's main window: the tie-point workspace and the alignment review as two tabs,
+the shortcuts for every frequent action, and the session file that makes reopening resume."""
+from __future__ import annotations
+
+import logging
+
+from PySide6.QtCore import QTimer
+from PySide6.QtGui import QAction, QKeySequence, QUndoStack
+from PySide6.QtWidgets import QMainWindow, QTabWidget
+
+from gtkit.io.poses import read_poses
+from gtkit.project import Project
+from gtkit.render.overlay import default_pose_file
+
+from .images import ImageCache
+from .ranking import OverlapRanker
+from .review_page import ReviewPage
+from .session import load_session, save_session
+from .store import TiePointStore
+from .tiepoint_page import TiePointPage
+
+log = logging.getLogger(__name__)
+
+SHORTCUTS = [  # (menu, label, keys, method)
+    ("Edit", "Undo", "Ctrl+Z", "undo_"), ("Edit", "Redo", "Ctrl+Shift+Z", "redo_"), ("Edit", "Redo", "Ctrl+Y", "redo_"),
+    ("Edit", "Delete active tie point", "Delete", "delete_"), ("Edit", "Deselect", "Esc", "deselect_"),
+    ("Pair", "Next query", "N", "next_query"), ("Pair", "Previous query", "P", "prev_query"),
+    ("Pair", "Next reference", "PgDown", "next_ref"), ("Pair", "Previous reference", "PgUp", "prev_ref"),
+    ("Pair", "Fit both photos", "F", "fit"), ("Pair", "Toggle loupe", "L", "toggle_loupe"),
+    ("Pair", "Zoom in", "+", "zoom_in"), ("Pair", "Zoom out", "-", "zoom_out"),
+    ("Suggest", "Suggest matches", "S", "suggest_"), ("Suggest", "Accept suggestion", "A", "accept_"),
+    ("Suggest", "Reject suggestion", "R", "reject_"), ("Suggest", "Next suggestion", "Tab", "skip_"),
+    ("Review", "Blend", "1", "mode_blend"), ("Review", "Swipe", "2", "mode_swipe"), ("Review", "Edges", "3", "mode_edges"),
+    ("Review", "Checkerboard", "4", "mode_checker"), ("Review", "Accept image", "Y", "verdict_accept"),
+    ("Review", "Reject image", "X", "verdict_reject"), ("Review", "Needs work", "W", "verdict_needs"),
+    ("Review", "Next image", "K", "next_image"), ("Review", "Previous image", "J", "prev_image"),
+    ("View", "Tie points tab", "Ctrl+1", "tab_tiepoints"), ("View", "Review tab", "Ctrl+2", "tab_review"),
+]
+
+
+class MainWindow(QMainWindow):
+    def __init__(self, project_dir, poses=None, query=None, on_saved=None):
+        super().__init__()
+        self.project = Project.load(project_dir)
+        P = self.paths = self.project.paths
+        self.session = load_session(P)
+        self.store = TiePointStore(P.tiepoints, on_saved=on_saved)
+        self.undo_stack = QUndoStack(self)
+        self.cache = ImageCache()
+        pose_file = poses or self.session.get("review", {}).get("pose_file") or default_pose_file(P)
+        reg = default_pose_file(P)
+        self.ranker = OverlapRanker(P, self.project.frame, read_poses(reg) if reg else None)
+        self.tiepoints = TiePointPage(P, self.store, self.cache, self.ranker, self.undo_stack)
+        self.review = ReviewPage(self.project, pose_file)
+        self.tabs = QTabWidget()
+        self.tabs.addTab(self.tiepoints, "Tie points")
+        self.tabs.addTab(self.review, "Alignment review")
+        self.setCentralWidget(self.tabs)
+        self.setWindowTitle(f"gtkit annotate: {self.project.name} ({P.root})")
+        self.resize(1500, 900)
+        for page in (self.tiepoints, self.review):
+            page.status.connect(lambda m: self.statusBar().showMessage(m, 8000))
+            page.session_changed.connect(self.schedule_session_save)
+        self.tabs.currentChanged.connect(self._tab_changed)
+        self._save_timer = QTimer(self)
+        self._save_timer.setSingleShot(True)
+        self._save_timer.setInterval(400)
+        self._save_timer.timeout.connect(self.save_session)
+        self._restoring = True
+        self._build_menus()
+        tp = dict(self.session.get("tiepoints", {}))
+        if query:
+            tp = {"query": query}
+        self.tiepoints.restore(tp)
+        self.review.restore(self.session.get("review", {}))
+        if self.session.get("tab") == "review":
+            self.tabs.setCurrentIndex(1)
+        self._restoring = False
+        self.statusBar().showMessage(f"{len(self.store)} tie points in {P.tiepoints.name}; every edit is saved at once")
+
+    def restore_views(self):
+        """Re-apply the saved zoom/centre once the window has its real size."""
+        views = self.session.get("tiepoints", {}).get("views")
+        if views and self.tiepoints.query == self.session.get("tiepoints", {}).get("query"):
+            self.tiepoints.qview.set_view_state(views.get("query"))
+            self.tiepoints.rview.set_view_state(views.get("reference"))
+
+    # --- menus and shortcuts -------------------------------------------------------------------
+    def _build_menus(self):
+        menus = {}
+        for menu, label, keys, method in SHORTCUTS:
+            m = menus.get(menu) or self.menuBar().addMenu(menu)
+            menus[menu] = m
+            a = QAction(f"{label}", self)
+            a.setShortcut(QKeySequence(keys))
+            a.triggered.connect(getattr(self, method))
+            m.addAction(a)
+            self.addAction(a)
+
+    def _on_tp(self):
+        return self.tabs.currentIndex() == 0
+
+    def undo_(self):
+        self.undo_stack.undo()
+
+    def redo_(self):
+        self.undo_stack.redo()
+
+    def delete_(self):
+        if self._on_tp():
+            self.tiepoints.delete_active()
+
+    def deselect_(self):
+        self.tiepoints.active = None
+        self.tiepoints.refresh()
+
+    def next_query(self):
+        self.tiepoints.step_query(1)
+
+    def prev_query(self):
+        self.tiepoints.step_query(-1)
+
+    def next_ref(self):
+        self.tiepoints.step_reference(1)
+
+    def prev_ref(self):
+        self.tiepoints.step_reference(-1)
+
+    def fit(self):
+        views = (self.tiepoints.qview, self.tiepoints.rview) if self._on_tp() else (self.review.view,)
+        for v in views:
+            v.fit()
+
+    def toggle_loupe(self):
+        for v in (self.tiepoints.qview, self.tiepoints.rview):
+            v.loupe_enabled = not v.loupe_enabled
+            v.loupe.hide()
+
+    def zoom_in(self):
+        for v in ((self.tiepoints.qview, self.tiepoints.rview) if self._on_tp() else (self.review.view,)):
+            v.zoom_by(1.25)
+
+    def zoom_out(self):
+        for v in ((self.tiepoints.qview, self.tiepoints.rview) if self._on_tp() else (self.review.view,)):
+            v.zoom_by(0.8)
+
+    def suggest_(self):
+        self.tiepoints.compute_suggestions()
+
+    def accept_(self):
+        self.tiepoints.accept_suggestion()
+
+    def reject_(self):
+        self.tiepoints.reject_suggestion()
+
+    def skip_(self):
+        self.tiepoints.skip_suggestion()
+
+    def mode_blend(self):
+        self.review.set_mode("blend")
+
+    def mode_swipe(self):
+        self.review.set_mode("swipe")
+
+    def mode_edges(self):
+        self.review.set_mode("edges")
+
+    def mode_checker(self):
+        self.review.set_mode("checker")
+
+    def verdict_accept(self):
+        if not self._on_tp():
+            self.review.set_verdict("accept")
+
+    def verdict_reject(self):
+        if not self._on_tp():
+            self.review.set_verdict("reject")
+
+    def verdict_needs(self):
+        if not self._on_tp():
+            self.review.set_verdict("needs-work")
+
+    def next_image(self):
+        self.review.step(1)
+
+    def prev_image(self):
+        self.review.step(-1)
+
+    def tab_tiepoints(self):
+        self.tabs.setCurrentIndex(0)
+
+    def tab_review(self):
+        self.tabs.setCurrentIndex(1)
+
+    def _tab_changed(self, i):
+        if i == 1 and self.review.image is None:
+            self.review.open_image(getattr(self.review, "_restore_image", None))
+        self.schedule_session_save()
+
+    # --- session -------------------------------------------------------------------------------
+    def session_state(self) -> dict:
+        return {"format": "gtkit-annotate-session", "tab": "review" if self.tabs.currentIndex() == 1 else "tiepoints",
+                "tiepoints": self.tiepoints.session_state(), "review": self.review.session_state()}
+
+    def schedule_session_save(self):
+        if not self._restoring:
+            self._save_timer.start()
+
+    def save_session(self):
+        save_session(self.paths, self.session_state())
+
+    def closeEvent(self, e):
+        self.save_session()
+        super().closeEvent(e)

@@ -1,0 +1,99 @@
+"""Which reference photos probably overlap a query photo: rank them by the distance between the
+points where their optical axes meet the ground (a plane at the site's ground height).
+
+Poses come from the registration (pseudo-GT poses) when available, else from the photos'
+priors (EXIF GPS + DJI gimbal angles). No Qt here.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from gtkit.errors import GtkitError
+from gtkit.io.exif import read_photo_meta
+from gtkit.pose import Pose
+
+log = logging.getLogger(__name__)
+
+
+def prior_pose(path: Path, frame) -> Pose | None:
+    """The pose the photo's metadata claims (GPS position, gimbal attitude), or None."""
+    try:
+        m = read_photo_meta(path)
+    except GtkitError:
+        return None
+    if not (m.has_gps and m.has_gimbal) or m.altitude is None:
+        return None
+    C = frame.wgs84_to_local(m.lon, m.lat, m.altitude)
+    return Pose.from_dji(m.gimbal_yaw, m.gimbal_pitch, m.gimbal_roll, C)
+
+
+def ground_height(paths, frame) -> float:
+    """A rough ground height (world z): the 5th percentile of the reference model's vertex
+    heights read from the first few MB of the OBJ; 0 when there is no model."""
+    obj = paths.model / "reference.obj"
+    if not obj.is_file():
+        return 0.0
+    zs = []
+    with open(obj, "rb") as f:
+        for line in f.read(4 << 20).splitlines():
+            if line.startswith(b"v "):
+                parts = line.split()
+                if len(parts) >= 4:
+                    zs.append(float(parts[3]))
+    if not zs:
+        return 0.0
+    z = float(np.percentile(zs, 5))
+    side = Path(str(obj) + ".offset.json")
+    if side.is_file():
+        try:
+            z += float(json.loads(side.read_text())["offset"][2])
+        except (KeyError, ValueError, IndexError, json.JSONDecodeError):
+            pass
+    return z - float(frame.origin[2])
+
+
+def axis_ground_point(pose: Pose, z_ground: float, max_range: float = 2000.0) -> np.ndarray:
+    """Where the optical axis meets the plane z = z_ground (capped at ``max_range`` metres)."""
+    C = pose.center
+    d = pose.R.T @ np.array([0.0, 0.0, 1.0])
+    if d[2] < -1e-3:
+        t = min((z_ground - C[2]) / d[2], max_range)
+    else:
+        t = max_range
+    return C + max(t, 0.0) * d
+
+
+class OverlapRanker:
+    """Ground points of every photo, computed once; ranks references for a query."""
+
+    def __init__(self, paths, frame, poses: dict[str, Pose] | None = None):
+        self.paths, self.frame = paths, frame
+        self.poses = dict(poses or {})
+        self.z_ground = ground_height(paths, frame)
+        self._points: dict[str, np.ndarray | None] = {}
+
+    def pose(self, name: str) -> Pose | None:
+        if name in self.poses:
+            return self.poses[name]
+        return prior_pose(self.paths.images / name, self.frame)
+
+    def point(self, name: str) -> np.ndarray | None:
+        if name not in self._points:
+            p = self.pose(name)
+            self._points[name] = None if p is None else axis_ground_point(p, self.z_ground)
+        return self._points[name]
+
+    def rank(self, query: str, references: list[str]) -> list[tuple[str, float]]:
+        """(reference, distance in metres between ground points), nearest first; references
+        without a pose come last with distance inf, in name order."""
+        q = self.point(query)
+        out = []
+        for r in references:
+            p = self.point(r)
+            d = float(np.linalg.norm((p - q)[:2])) if (p is not None and q is not None) else float("inf")
+            out.append((r, d))
+        return sorted(out, key=lambda x: (x[1], x[0]))

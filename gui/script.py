@@ -1,0 +1,59 @@
+"""Drive the annotator with real input events from a list of actions (see :mod:`gui.app`)."""
+from __future__ import annotations
+
+import json
+import sys
+
+from PySide6.QtCore import QObject, Qt, QTimer
+from PySide6.QtGui import QKeySequence
+from PySide6.QtTest import QTest
+
+
+class ScriptRunner(QObject):
+    def __init__(self, window, actions: list[dict], interval_ms: int = 50, out=sys.stdout):
+        super().__init__(window)
+        self.w, self.actions, self.interval, self.out = window, list(actions), interval_ms, out
+        self.k = 0
+
+    def start(self):
+        self.out.write(f"READY {len(self.w.store)}\n")
+        self.out.flush()
+        QTimer.singleShot(0, self.step)
+
+    def step(self):
+        if self.k >= len(self.actions):
+            self.out.write("FINISHED\n")
+            self.out.flush()
+            return
+        a = self.actions[self.k]
+        self.k += 1
+        wait = self.interval
+        info = run_action(self.w, a)
+        if "wait" in a:
+            wait = int(a["wait"])
+        self.out.write("DONE " + json.dumps(info) + "\n")
+        self.out.flush()
+        QTimer.singleShot(wait, self.step)
+
+
+def run_action(w, a: dict) -> dict:
+    """Perform one action on the main window with real events; returns what was committed."""
+    page = w.tiepoints
+    if "click" in a:
+        view = page.qview if a["click"] == "query" else page.rview
+        image = page.query if a["click"] == "query" else page.reference
+        pos = view.scene_to_widget(float(a["x"]), float(a["y"]))
+        before = page.undo.index()
+        QTest.mouseClick(view.viewport(), Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier, pos)
+        committed = page.undo.index() > before
+        o = page.store.observation(page.active, image) if committed else None
+        return {"action": a, "tp": page.active if committed else None, "image": image,
+                "x": o.x if o else None, "y": o.y if o else None}
+    if "key" in a:
+        seq = QKeySequence(a["key"])[0]
+        QTest.keyClick(w, seq.key(), seq.keyboardModifiers())
+        return {"action": a, "undo_index": page.undo.index(), "n_tiepoints": len(page.store)}
+    if "pair" in a:
+        page.set_pair(*a["pair"])
+        return {"action": a, "query": page.query, "reference": page.reference}
+    return {"action": a}

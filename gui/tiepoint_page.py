@@ -1,0 +1,355 @@
+"""The tie-point workspace: a query photo and a reference photo side by side.
+
+Left click places the active tie point's observation in that photo (a new tie point when the
+active one already has one there); drag a marker to move it; Delete removes the active tie
+point; Ctrl+Z / Ctrl+Shift+Z undo / redo. References are ranked by likely overlap. Suggested
+correspondences (S) are accepted with A and rejected with R. Every edit is in the file at once.
+"""
+from __future__ import annotations
+
+import logging
+
+from PySide6.QtCore import QObject, QRunnable, QThreadPool, Qt, QTimer, Signal
+from PySide6.QtGui import QUndoStack
+from PySide6.QtWidgets import (QHBoxLayout, QLabel, QListWidget, QListWidgetItem, QPushButton, QSplitter,
+                               QTreeWidget, QTreeWidgetItem, QVBoxLayout, QWidget)
+
+from gtkit.io.tiepoints import Observation, TiePoint
+
+from .image_view import ImageView
+from .residuals import read_residuals
+from .suggest import suggest
+from .undo import AddTiePoint, DeleteTiePoint, MoveObservation, PlaceObservation
+
+log = logging.getLogger(__name__)
+
+ROLE = Qt.ItemDataRole.UserRole
+
+
+class _SuggestSignals(QObject):
+    done = Signal(str, str, object)
+
+
+class _SuggestJob(QRunnable):
+    def __init__(self, q, r, qp, rp, signals):
+        super().__init__()
+        self.q, self.r, self.qp, self.rp, self.signals = q, r, qp, rp, signals
+
+    def run(self):
+        try:
+            out = suggest(self.qp, self.rp)
+        except Exception as e:  # noqa: BLE001 - shown to the user, never crashes the GUI
+            out = e
+        self.signals.done.emit(self.q, self.r, out)
+
+
+class TiePointPage(QWidget):
+    status = Signal(str)
+    session_changed = Signal()
+
+    def __init__(self, paths, store, cache, ranker, undo_stack: QUndoStack, parent=None):
+        super().__init__(parent)
+        self.paths, self.store, self.cache, self.ranker = paths, store, cache, ranker
+        self.undo = undo_stack
+        self.query: str | None = None
+        self.reference: str | None = None
+        self.active: str | None = None
+        self.suggestions: list = []
+        self.suggestion_index = 0
+        self.residuals = read_residuals(paths)
+        self.queries = self._list_images(paths.query_images, "queries")
+        self.references = self._list_images(paths.reference_images, "reference")
+
+        self.qview = ImageView(cache, title="query")
+        self.rview = ImageView(cache, title="reference")
+        self.qlabel, self.rlabel = QLabel("query"), QLabel("reference")
+        self.query_list = QListWidget()
+        self.ref_list = QListWidget()
+        self.tp_tree = QTreeWidget()
+        self.tp_tree.setHeaderLabels(["tie point", "residual px", "images"])
+        self.tp_tree.setRootIsDecorated(False)
+        self.tp_tree.setColumnWidth(0, 90)
+        self.suggest_button = QPushButton("Suggest matches (S)")
+        self.suggest_label = QLabel("")
+        self._pool = QThreadPool()
+        self._pool.setMaxThreadCount(1)
+        self._sig = _SuggestSignals()
+        self._sig.done.connect(self._on_suggestions)
+
+        side = QVBoxLayout()
+        side.addWidget(QLabel("Query photos (N / P)"))
+        side.addWidget(self.query_list, 2)
+        side.addWidget(QLabel("References by likely overlap (PgDn / PgUp)"))
+        side.addWidget(self.ref_list, 2)
+        side.addWidget(QLabel("Tie points of this query, worst residual first"))
+        side.addWidget(self.tp_tree, 3)
+        side.addWidget(self.suggest_button)
+        side.addWidget(self.suggest_label)
+        left = QWidget()
+        left.setLayout(side)
+        left.setMaximumWidth(330)
+        views = QSplitter()
+        for lab, v in ((self.qlabel, self.qview), (self.rlabel, self.rview)):
+            w = QWidget()
+            lay = QVBoxLayout(w)
+            lay.setContentsMargins(0, 0, 0, 0)
+            lay.addWidget(lab)
+            lay.addWidget(v, 1)
+            views.addWidget(w)
+        lay = QHBoxLayout(self)
+        lay.addWidget(left)
+        lay.addWidget(views, 1)
+
+        for q in self.queries:
+            self.query_list.addItem(q)
+        self.query_list.currentTextChanged.connect(lambda t: t and t != self.query and self.set_pair(t, None))
+        self.ref_list.currentItemChanged.connect(self._ref_item_changed)
+        self.tp_tree.itemClicked.connect(lambda it, _c: self.jump_to(it.data(0, ROLE)))
+        self.suggest_button.clicked.connect(lambda: self.compute_suggestions())
+        self.qview.clicked.connect(lambda x, y: self.place(self.query, x, y))
+        self.rview.clicked.connect(lambda x, y: self.place(self.reference, x, y))
+        for v in (self.qview, self.rview):
+            v.marker_pressed.connect(self._marker_pressed)
+            v.view_changed.connect(self.session_changed)
+        self.qview.marker_moved.connect(lambda k, *a: self._marker_moved(self.query, k, *a))
+        self.rview.marker_moved.connect(lambda k, *a: self._marker_moved(self.reference, k, *a))
+        self.undo.indexChanged.connect(lambda _i: self.refresh())
+
+    @staticmethod
+    def _list_images(folder, prefix) -> list[str]:
+        if not folder.is_dir():
+            return []
+        exts = {".jpg", ".jpeg", ".png", ".tif", ".tiff"}
+        return sorted(f"{prefix}/{p.relative_to(folder).as_posix()}" for p in folder.rglob("*")
+                      if p.suffix.lower() in exts)
+
+    # --- pair --------------------------------------------------------------------------
+    def set_pair(self, query: str | None, reference: str | None = None, views: dict | None = None):
+        if query is None and self.queries:
+            query = self.queries[0]
+        if query is None:
+            return
+        changed_q = query != self.query
+        self.query = query
+        if changed_q:
+            self.suggestions, self.suggestion_index = [], 0
+            ranked = self.ranker.rank(query, self.references)
+            counts = self.store.pair_counts(query)
+            self.ref_list.blockSignals(True)
+            self.ref_list.clear()
+            for name, d in ranked:
+                txt = f"{name}   {d:.0f} m" if d != float("inf") else f"{name}   (no pose)"
+                if counts.get(name):
+                    txt += f"   [{counts[name]} tp]"
+                it = QListWidgetItem(txt)
+                it.setData(ROLE, name)
+                self.ref_list.addItem(it)
+            self.ref_list.blockSignals(False)
+            self.qview.show_image(self.paths.images / query)
+            self.qlabel.setText(f"query: {query}")
+            items = self.query_list.findItems(query, Qt.MatchFlag.MatchExactly)
+            if items:
+                self.query_list.blockSignals(True)
+                self.query_list.setCurrentItem(items[0])
+                self.query_list.blockSignals(False)
+        names = [self.ref_list.item(i).data(ROLE) for i in range(self.ref_list.count())]
+        if reference not in names:
+            reference = self.reference if (not changed_q and self.reference in names) else (names[0] if names else None)
+        if reference != self.reference or changed_q:
+            self.reference = reference
+            self.suggestions, self.suggestion_index = [], 0
+            if reference:
+                self.rview.show_image(self.paths.images / reference)
+            self.rlabel.setText(f"reference: {reference}")
+            self.ref_list.blockSignals(True)
+            self.ref_list.setCurrentRow(names.index(reference) if reference in names else -1)
+            self.ref_list.blockSignals(False)
+        if views:
+            self.qview.set_view_state(views.get("query"))
+            self.rview.set_view_state(views.get("reference"))
+        self.refresh()
+        self.session_changed.emit()
+
+    def _ref_item_changed(self, cur, _prev):
+        if cur is not None and cur.data(ROLE) != self.reference:
+            self.set_pair(self.query, cur.data(ROLE))
+
+    def step_query(self, d: int):
+        if self.queries and self.query in self.queries:
+            self.set_pair(self.queries[(self.queries.index(self.query) + d) % len(self.queries)])
+
+    def step_reference(self, d: int):
+        n = self.ref_list.count()
+        if n:
+            self.ref_list.setCurrentRow((self.ref_list.currentRow() + d) % n)
+
+    # --- edits -------------------------------------------------------------------------------
+    def place(self, image: str | None, x: float, y: float) -> str | None:
+        """A click: the active tie point's observation in ``image``, or a new tie point."""
+        if image is None:
+            return None
+        tp = self.store.get(self.active) if self.active else None
+        if tp is None or any(o.image == image for o in tp.observations):
+            tp_id = self.store.new_id()
+        else:
+            tp_id = tp.id
+        self.active = tp_id
+        self.undo.push(PlaceObservation(self.store, tp_id, image, x, y))
+        self.status.emit(f"{tp_id}: placed in {image} at ({x:.1f}, {y:.1f}); saved")
+        return tp_id
+
+    def delete_active(self):
+        if self.active and self.store.get(self.active):
+            self.undo.push(DeleteTiePoint(self.store, self.active))
+            self.status.emit(f"{self.active} deleted; saved")
+            self.active = None
+            self.refresh()
+
+    def _marker_pressed(self, key: str):
+        if key.startswith("s:"):
+            self.suggestion_index = int(key[2:])
+            self.refresh()
+            return
+        self.active = key
+        self.refresh()
+        self.session_changed.emit()
+
+    def _marker_moved(self, image, key, ox, oy, nx, ny):
+        if key.startswith("s:"):
+            i = int(key[2:])
+            s = self.suggestions[i]
+            if image == self.query:
+                s.xq, s.yq = nx, ny
+            else:
+                s.xr, s.yr = nx, ny
+            return
+        self.undo.push(MoveObservation(self.store, key, image, (ox, oy), (nx, ny)))
+        self.status.emit(f"{key}: moved in {image}; saved")
+
+    # --- suggestions --------------------------------------------------------------------------
+    def compute_suggestions(self, sync: bool = False):
+        if not (self.query and self.reference):
+            return
+        qp, rp = str(self.paths.images / self.query), str(self.paths.images / self.reference)
+        self.suggest_label.setText("matching ...")
+        if sync:
+            self._on_suggestions(self.query, self.reference, suggest(qp, rp))
+        else:
+            self._pool.start(_SuggestJob(self.query, self.reference, qp, rp, self._sig))
+
+    def _on_suggestions(self, q, r, out):
+        if (q, r) != (self.query, self.reference):
+            return
+        if isinstance(out, Exception):
+            self.suggest_label.setText(f"matching failed: {out}")
+            return
+        self.suggestions, self.suggestion_index = list(out), 0
+        self.suggest_label.setText(f"{len(out)} suggestions: A accept, R reject, Tab skip")
+        self.refresh()
+        self._focus_suggestion()
+
+    def _focus_suggestion(self):
+        if self.suggestions and self.suggestion_index < len(self.suggestions):
+            s = self.suggestions[self.suggestion_index]
+            self.qview.centerOn(s.xq, s.yq)
+            self.rview.centerOn(s.xr, s.yr)
+
+    def accept_suggestion(self) -> str | None:
+        if not self.suggestions or self.suggestion_index >= len(self.suggestions):
+            return None
+        s = self.suggestions.pop(self.suggestion_index)
+        tp = TiePoint(self.store.new_id(), [Observation(self.query, s.xq, s.yq), Observation(self.reference, s.xr, s.yr)],
+                      source="suggestion")
+        self.undo.push(AddTiePoint(self.store, tp))
+        self.active = tp.id
+        self._after_suggestion(f"accepted as {tp.id}; saved")
+        return tp.id
+
+    def reject_suggestion(self):
+        if self.suggestions and self.suggestion_index < len(self.suggestions):
+            self.suggestions.pop(self.suggestion_index)
+            self._after_suggestion("rejected")
+
+    def skip_suggestion(self):
+        if self.suggestions:
+            self.suggestion_index = (self.suggestion_index + 1) % len(self.suggestions)
+            self._after_suggestion("skipped")
+
+    def _after_suggestion(self, what: str):
+        self.suggestion_index = min(self.suggestion_index, max(0, len(self.suggestions) - 1))
+        self.suggest_label.setText(f"{what}; {len(self.suggestions)} suggestions left")
+        self.refresh()
+        self._focus_suggestion()
+
+    # --- display -------------------------------------------------------------------------------
+    def _label(self, tp_id: str) -> str:
+        r = self.residuals.get(tp_id)
+        return tp_id if r is None else f"{tp_id} {r.residual_px:.1f}px"
+
+    def refresh(self):
+        for view, image in ((self.qview, self.query), (self.rview, self.reference)):
+            keep = set()
+            if image:
+                for tp, o in self.store.in_image(image):
+                    r = self.residuals.get(tp.id)
+                    kind = "active" if tp.id == self.active else ("bad" if r and (r.inlier is False or r.residual_px > 3) else "normal")
+                    view.set_marker(tp.id, o.x, o.y, kind, self._label(tp.id))
+                    keep.add(tp.id)
+                for i, s in enumerate(self.suggestions):
+                    x, y = (s.xq, s.yq) if view is self.qview else (s.xr, s.yr)
+                    key = f"s:{i}"
+                    view.set_marker(key, x, y, "suggestion_current" if i == self.suggestion_index else "suggestion",
+                                    f"s{i}" if i == self.suggestion_index else "")
+                    keep.add(key)
+            for k in list(view.markers):
+                if k not in keep:
+                    view.remove_marker(k)
+        self._fill_tree()
+
+    def _fill_tree(self):
+        self.tp_tree.clear()
+        if not self.query:
+            return
+        rows = []
+        for tp, _o in self.store.in_image(self.query):
+            r = self.residuals.get(tp.id)
+            rows.append((-(r.residual_px if r else -1.0), tp.id, r, len(tp.observations)))
+        rows.sort()
+        items = []
+        for _k, tp_id, r, n in rows:
+            it = QTreeWidgetItem([tp_id, "" if r is None else f"{r.residual_px:.2f}", str(n)])
+            it.setData(0, ROLE, tp_id)
+            items.append(it)
+        self.tp_tree.addTopLevelItems(items)
+        for it in items:
+            if it.data(0, ROLE) == self.active:
+                self.tp_tree.setCurrentItem(it)
+
+    def jump_to(self, tp_id: str):
+        """Make ``tp_id`` active, show it against one of its references, centre both views on it."""
+        tp = self.store.get(tp_id)
+        if tp is None:
+            return
+        self.active = tp_id
+        others = [o.image for o in tp.observations if o.image != self.query]
+        if self.reference not in others and others:
+            ref = next((i for i in others if i.startswith("reference/")), others[0])
+            if ref in [self.ref_list.item(i).data(ROLE) for i in range(self.ref_list.count())]:
+                self.set_pair(self.query, ref)
+        for view, image in ((self.qview, self.query), (self.rview, self.reference)):
+            o = self.store.observation(tp_id, image)
+            if o:
+                view.center_on(o.x, o.y, zoom=max(view.zoom(), 1.0))
+        self.refresh()
+        self.session_changed.emit()
+
+    def session_state(self) -> dict:
+        return {"query": self.query, "reference": self.reference, "active": self.active,
+                "views": {"query": self.qview.view_state(), "reference": self.rview.view_state()}}
+
+    def restore(self, st: dict):
+        q = st.get("query") if st.get("query") in self.queries else None
+        self.set_pair(q, st.get("reference"), st.get("views"))
+        if st.get("active") and self.store.get(st["active"]):
+            self.active = st["active"]
+            self.refresh()
