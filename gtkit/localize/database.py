@@ -1,0 +1,262 @@
+"""``render-db``: the offline database of rendered views (RGB + float32 depth + pose) over the
+reference model (UAVD4L §3.1), fanned out over an executor, resumable view by view.
+
+Layout under ``work/render_db/``::
+
+    settings.json            the settings the views on disk were made with (partial-run resume)
+    images/<view>.jpg        RGB (JPEG, quality 95)
+    depth/<view>.npz         'depth' float32 HxW metres along the optical axis, NaN = background;
+                             'valid_fraction'; dropped views keep only 'valid_fraction'
+    views.json               every view: name, level, DJI angles, centre, valid fraction, kept
+    poses.txt intrinsics.txt the kept views (names '<view>.jpg', world-to-camera)
+    stage.json               written last; a re-run with the same settings skips the stage
+
+View names: ``h<H>/p<position>_t<paper pitch>_y<yaw>``, see :mod:`gtkit.localize.grid`.
+
+Memory: one view is rendered at a time per worker. Which parts of the model a view draws is
+chosen per view by a *part selector* (``parts`` setting; ``all`` draws everything); a tiled
+model can register a selector that picks the tiles a view sees.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import GtkitError
+from ..io.atomic import atomic_path, write_json
+from ..io.poses import write_intrinsics, write_poses
+from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done
+from .executors import ExecutorSettings, make_executor, run_map
+from .grid import View, ground_level, make_views
+
+log = logging.getLogger(__name__)
+STAGE = "render_db"
+
+
+@dataclass(frozen=True)
+class RenderDbSettings:
+    heights: tuple[float, ...] = (100.0, 150.0)       # H above the model's ground level (m), paper
+    intervals: tuple[float, ...] = (50.0, 75.0)       # grid interval alpha_t per height (m), paper
+    paper_pitches: tuple[float, ...] = (0.0, 45.0)    # from nadir: 0 = DJI -90, 45 = DJI -45, paper
+    yaw_step: float = 45.0                            # alpha_theta (deg): 8 yaws, 16 views a position
+    width: int = 640                                  # rendered view size (px)
+    height: int = 480
+    hfov_deg: float = 60.0                            # horizontal field of view of the virtual camera
+    min_valid_fraction: float = 0.5                   # drop views that see less model than this
+    jpeg_quality: int = 95
+    parts: str = "all"                                # part selector (which model parts a view draws)
+    model: str = "model/reference.obj"                # relative to the project
+
+
+def db_camera(s: RenderDbSettings) -> Camera:
+    return Camera.from_hfov(s.width, s.height, s.hfov_deg)
+
+
+# --- part selectors: which uploaded parts a view draws (None = all) ---------------------------
+
+def _all_parts(renderer, camera: Camera, view: View):
+    return None
+
+
+PART_SELECTORS: dict[str, Callable] = {"all": _all_parts}
+
+
+# --- worker side --------------------------------------------------------------------------------
+
+_WORKER: dict = {}
+
+
+def _renderer_for(root: str, model: str):
+    key = (root, model)
+    if _WORKER.get("key") != key:
+        from ..io.mesh import load_model
+        from ..render.renderer import Renderer
+
+        if "renderer" in _WORKER:
+            _WORKER["renderer"].release()
+        proj = Project.load(root)
+        _WORKER["renderer"] = Renderer(load_model(Path(root) / model, proj.frame))
+        _WORKER["key"] = key
+    return _WORKER["renderer"]
+
+
+def _render_chunk(task) -> list[tuple[str, float]]:
+    """Render a list of views; returns (name, valid fraction) for each. Writes files atomically,
+    the depth file last, so an existing depth file means the view is complete."""
+    import cv2
+
+    root, settings_d, views = task
+    s = RenderDbSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings_d.items()})
+    r = _renderer_for(root, s.model)
+    cam = db_camera(s)
+    select = PART_SELECTORS[s.parts]
+    out = Path(root) / "work" / STAGE
+    res = []
+    for vd in views:
+        v = View(**{**vd, "center": tuple(vd["center"])})
+        rr = r.render(cam, v.pose(), parts=select(r, cam, v))
+        frac = float(np.isfinite(rr.depth).mean())
+        dpath = out / "depth" / f"{v.name}.npz"
+        if frac >= s.min_valid_fraction:
+            with atomic_path(out / "images" / f"{v.name}.jpg") as tmp:
+                cv2.imwrite(str(tmp), cv2.cvtColor(rr.rgb, cv2.COLOR_RGB2BGR),
+                            [cv2.IMWRITE_JPEG_QUALITY, s.jpeg_quality])
+            with atomic_path(dpath) as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez_compressed(f, depth=rr.depth.astype(np.float32), valid_fraction=frac)
+        else:
+            with atomic_path(dpath) as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez(f, valid_fraction=frac)
+        res.append((v.name, frac))
+    return res
+
+
+def _existing_fraction(path: Path) -> float | None:
+    try:
+        with np.load(path) as z:
+            return float(z["valid_fraction"])
+    except (OSError, KeyError, ValueError, EOFError):
+        return None
+
+
+# --- the stage ----------------------------------------------------------------------------------
+
+def plan_views(project: Project, s: RenderDbSettings) -> tuple[list[View], dict]:
+    """The viewpoints for this model and settings, plus the extent and ground level used."""
+    from ..io.mesh import load_model
+    from ..render.renderer import Renderer
+
+    model = project.paths.root / s.model
+    if not model.is_file():
+        raise GtkitError("reference model not found (expected model/reference.obj)", model)
+    if len(s.heights) != len(s.intervals):
+        raise GtkitError(f"render-db needs one interval per height, got heights {s.heights} "
+                         f"and intervals {s.intervals}")
+    mesh = load_model(model, project.frame)
+    b = mesh.bounds()
+    r = Renderer(mesh)
+    try:
+        g = ground_level(r, b[0, 0], b[0, 1], b[1, 0], b[1, 1])
+    finally:
+        r.release()
+    extent = (float(b[0, 0]), float(b[0, 1]), float(b[1, 0]), float(b[1, 1]))
+    views = make_views(extent, g, s.heights, s.intervals, s.paper_pitches, s.yaw_step)
+    return views, {"extent_xmin_ymin_xmax_ymax": extent, "ground_level_z": g}
+
+
+def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSettings(),
+        executor: ExecutorSettings = ExecutorSettings(), chunk: int = 8, force: bool = False) -> Path:
+    """Render the database; returns its folder. Resumes view by view when settings match."""
+    project = project if isinstance(project, Project) else Project.load(project)
+    P = project.paths
+    out = P.stage(STAGE)
+    inputs = {"model": file_fingerprint(P.root / settings.model)}
+    if not force and stage_done(out, settings, inputs):
+        log.info("render-db: up to date (%s)", out)
+        return out
+    sd = {"settings": settings_dict(settings), "inputs": inputs}
+    sfile = out / "settings.json"
+    if sfile.is_file() and json.loads(sfile.read_text()) != sd:
+        log.info("render-db: settings changed; removing the old views")
+        for sub in ("images", "depth"):
+            shutil.rmtree(out / sub, ignore_errors=True)
+        for f in ("views.json", "poses.txt", "intrinsics.txt", "stage.json"):
+            (out / f).unlink(missing_ok=True)
+    write_json(sfile, sd)
+    views, info = plan_views(project, settings)
+    fractions: dict[str, float] = {}
+    todo = []
+    for v in views:
+        f = _existing_fraction(out / "depth" / f"{v.name}.npz")
+        if f is None:
+            todo.append(v)
+        else:
+            fractions[v.name] = f
+    log.info("render-db: %d views planned, %d already on disk, %d to render", len(views), len(fractions), len(todo))
+    t0 = time.perf_counter()
+    if todo:
+        tasks = [(str(P.root), asdict(settings), [v.as_dict() for v in todo[i:i + chunk]])
+                 for i in range(0, len(todo), chunk)]
+        ex = make_executor(executor)
+        try:
+            for res in run_map(ex, _render_chunk, tasks, progress="render-db"):
+                fractions.update(dict(res))
+        finally:
+            ex.close()
+    dt = time.perf_counter() - t0
+    cam = db_camera(settings)
+    kept = [v for v in views if fractions[v.name] >= settings.min_valid_fraction]
+    write_json(out / "views.json", {
+        **info, "camera": cam.to_line(),
+        "note": "paper pitch 0 = nadir = DJI pitch -90; paper pitch 45 = DJI pitch -45; heights above ground_level_z",
+        "views": [{**v.as_dict(), "valid_fraction": fractions[v.name],
+                   "kept": fractions[v.name] >= settings.min_valid_fraction} for v in views]})
+    write_poses(out / "poses.txt", {f"{v.name}.jpg": v.pose() for v in kept}, header="render-db views")
+    write_intrinsics(out / "intrinsics.txt", {f"{v.name}.jpg": cam for v in kept})
+    mark_stage_done(out, settings, inputs, n_views=len(views), n_kept=len(kept), n_rendered=len(todo),
+                    seconds=round(dt, 2), views_per_s=round(len(todo) / dt, 3) if todo and dt > 0 else None)
+    log.info("render-db: %d of %d views kept (%d rendered in %.1f s)", len(kept), len(views), len(todo), dt)
+    return out
+
+
+# --- reading the database ---------------------------------------------------------------------
+
+@dataclass
+class DbView:
+    name: str              # '<view>' (no extension)
+    image: Path
+    depth_path: Path
+    pose: object           # gtkit.pose.Pose
+    yaw: float
+    pitch: float
+    roll: float
+    height: float
+    paper_pitch: float
+
+
+@dataclass
+class Database:
+    root: Path
+    camera: Camera
+    views: list[DbView] = field(default_factory=list)
+
+    def depth(self, view: DbView) -> np.ndarray | None:
+        """The view's depth map, or None when the file holds no depth."""
+        try:
+            with np.load(view.depth_path) as z:
+                return z["depth"] if "depth" in z.files else None
+        except (OSError, ValueError, EOFError):
+            return None
+
+    def subset(self, heights=None, paper_pitches=None) -> "Database":
+        vs = [v for v in self.views if (heights is None or v.height in heights)
+              and (paper_pitches is None or v.paper_pitch in paper_pitches)]
+        return Database(self.root, self.camera, vs)
+
+
+def load_database(project: Project) -> Database:
+    out = project.paths.stage(STAGE)
+    vfile = out / "views.json"
+    if not vfile.is_file() or not (out / "stage.json").is_file():
+        raise GtkitError("no rendered database: run 'gtkit render-db DIR' first", out)
+    d = json.loads(vfile.read_text())
+    f = d["camera"].split()
+    cam = Camera(f[0], int(f[1]), int(f[2]), tuple(float(x) for x in f[3:]))
+    views = []
+    for vd in d["views"]:
+        if not vd["kept"]:
+            continue
+        v = View(**{k: vd[k] for k in ("name", "height", "paper_pitch", "yaw", "pitch", "roll")},
+                 center=tuple(vd["center"]))
+        views.append(DbView(v.name, out / "images" / f"{v.name}.jpg", out / "depth" / f"{v.name}.npz",
+                            v.pose(), v.yaw, v.pitch, v.roll, v.height, v.paper_pitch))
+    return Database(out, cam, views)

@@ -1,0 +1,116 @@
+"""Local features and matchers, chosen by name from small registries.
+
+Interface
+    extractor ``extract(rgb uint8 HxWx3) -> Features`` (keypoints in gtkit pixel convention,
+    i.e. COLMAP's: top-left pixel centre at (0.5, 0.5), in the *given* image's pixels);
+    matcher ``match(Features, Features) -> (M, 2) int`` index pairs.
+
+``sift``: OpenCV SIFT on a copy resized so its longer side is at most ``max_side`` (keypoints
+are scaled back; with COLMAP's pixel convention a resize by s maps u to u * s exactly),
+descriptors stored as uint8 like COLMAP, turned into RootSIFT for matching.
+``nn-ratio``: mutual nearest neighbours in RootSIFT space that also pass Lowe's ratio test.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..conventions import index_to_pixel
+from ..errors import GtkitError
+
+
+@dataclass
+class Features:
+    kp: np.ndarray     # (N, 2) float64 pixels, gtkit convention
+    desc: np.ndarray   # (N, D) descriptors as stored (uint8 SIFT)
+
+    def __len__(self):
+        return len(self.kp)
+
+
+def rootsift(desc: np.ndarray) -> np.ndarray:
+    """RootSIFT (Arandjelovic & Zisserman 2012): L1-normalise, then square root (unit L2)."""
+    d = np.asarray(desc, dtype=np.float32)
+    d /= np.maximum(d.sum(axis=1, keepdims=True), 1e-9)
+    return np.sqrt(d)
+
+
+class SiftExtractor:
+    name = "sift"
+
+    def __init__(self, max_keypoints: int = 4000, max_side: int = 1024, contrast_threshold: float = 0.02):
+        import cv2
+
+        self.max_side = max_side
+        self.sift = cv2.SIFT_create(nfeatures=max_keypoints, contrastThreshold=contrast_threshold)
+
+    def extract(self, rgb: np.ndarray) -> Features:
+        import cv2
+
+        gray = cv2.cvtColor(np.asarray(rgb), cv2.COLOR_RGB2GRAY)
+        h, w = gray.shape
+        s = min(1.0, self.max_side / max(h, w))
+        if s < 1.0:
+            gray = cv2.resize(gray, (int(round(w * s)), int(round(h * s))), interpolation=cv2.INTER_AREA)
+        kps, desc = self.sift.detectAndCompute(gray, None)
+        if desc is None or not kps:
+            return Features(np.zeros((0, 2)), np.zeros((0, 128), np.uint8))
+        pts = index_to_pixel(np.array([k.pt for k in kps], dtype=np.float64))
+        sx, sy = w / gray.shape[1], h / gray.shape[0]
+        pts *= (sx, sy)
+        return Features(pts, np.clip(np.round(desc), 0, 255).astype(np.uint8))
+
+
+class MutualNNRatioMatcher:
+    name = "nn-ratio"
+
+    def __init__(self, ratio: float = 0.85):
+        self.ratio = ratio
+
+    def match(self, a: Features, b: Features) -> np.ndarray:
+        import cv2
+
+        if len(a) < 2 or len(b) < 2:
+            return np.zeros((0, 2), int)
+        da, db = rootsift(a.desc), rootsift(b.desc)
+        bf = cv2.BFMatcher(cv2.NORM_L2)
+        fwd = bf.knnMatch(da, db, k=2)
+        bwd = bf.match(db, da)
+        back = np.full(len(b), -1)
+        for m in bwd:
+            back[m.queryIdx] = m.trainIdx
+        out = [(m[0].queryIdx, m[0].trainIdx) for m in fwd
+               if len(m) == 2 and m[0].distance < self.ratio * m[1].distance and back[m[0].trainIdx] == m[0].queryIdx]
+        return np.array(out, dtype=int).reshape(-1, 2)
+
+
+EXTRACTORS = {"sift": SiftExtractor}
+MATCHERS = {"nn-ratio": MutualNNRatioMatcher}
+
+
+def make_extractor(name: str, **kw):
+    if name not in EXTRACTORS:
+        raise GtkitError(f"unknown feature extractor {name!r} (available: {', '.join(EXTRACTORS)})")
+    return EXTRACTORS[name](**kw)
+
+
+def make_matcher(name: str, **kw):
+    if name not in MATCHERS:
+        raise GtkitError(f"unknown matcher {name!r} (available: {', '.join(MATCHERS)})")
+    return MATCHERS[name](**kw)
+
+
+# --- on-disk feature store (one HDF5 group per image, like hloc) ---------------------------------
+
+def write_features(h5, name: str, f: Features) -> None:
+    if name in h5:
+        del h5[name]
+    g = h5.create_group(name)
+    g.create_dataset("kp", data=f.kp.astype(np.float32))
+    g.create_dataset("desc", data=f.desc)
+
+
+def read_features(h5, name: str) -> Features:
+    g = h5[name]
+    return Features(g["kp"][()].astype(np.float64), g["desc"][()])

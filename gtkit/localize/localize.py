@@ -1,0 +1,390 @@
+"""``localize``: the online stage of UAVLoc (UAVD4L §3.2) for every query photo.
+
+Per query: local features -> global descriptor -> rotation prior filter (gamma_o) and optional
+GPS radius -> top-k database views -> matching against each -> lifting through the rendered
+depth -> gravity-guided P3P RANSAC (gamma_eps) -> refined pose, or a failure with its reason.
+
+Offline parts, cached under ``work/localize_db/<extractor conf>/`` and shared by every run and
+ablation: database features (``features.h5``, one group per view), the VLAD codebook and the
+database's global descriptors.
+
+Outputs under ``work/localize/`` (or ``work/localize-<ablation>/``): ``poses.txt`` (only the
+queries that were localized; never a prior or a database pose), ``status.json`` (per query:
+ok, reason, retrieved views with scores, matches/inliers, seconds by step), ``pairs.txt``
+(query, retrieved view, rank), ``stage.json``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..conventions import dji_to_rotation, gravity_in_camera
+from ..errors import GtkitError
+from ..io.atomic import atomic_path, write_json, write_text
+from ..io.poses import read_intrinsics, write_poses
+from ..pose import Pose
+from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
+from .database import Database, load_database
+from .executors import ExecutorSettings, make_executor, run_map
+from .pnp import PnPSettings
+
+log = logging.getLogger(__name__)
+STEPS = ("features", "retrieval", "matching", "lifting", "pnp")
+
+
+@dataclass(frozen=True)
+class FeatureSettings:
+    extractor: str = "sift"
+    max_keypoints: int = 4000          # per query image
+    max_keypoints_db: int = 3000       # per database view
+    max_side: int = 1024               # query images are resized to this longer side for features
+    contrast_threshold: float = 0.02
+
+
+@dataclass(frozen=True)
+class LocalizeSettings:
+    features: FeatureSettings = FeatureSettings()
+    matcher: str = "nn-ratio"
+    ratio: float = 0.85                # Lowe's ratio for nn-ratio
+    descriptor: str = "vlad"
+    vlad_words: int = 64
+    rotation_prior: bool = True        # filter database views by the IMU prior (paper: on)
+    gamma_o: float = 30.0              # deg, per angle (paper)
+    gps_radius_m: float | None = None  # keep views within this horizontal radius of the GPS prior
+    top_k: int = 3                     # retrieved views per query (paper)
+    max_rel_jump: float = 0.03         # depth discontinuity test for lifting (relative)
+    pnp: PnPSettings = PnPSettings()   # gravity_deg = gamma_eps = 2 (paper); None = no check
+    db_heights: tuple[float, ...] | None = None        # use only these database levels
+    db_paper_pitches: tuple[float, ...] | None = None  # use only these paper pitches (0 = nadir)
+    query_glob: str = "queries/*/*_W.jpg"              # relative to images/
+
+
+# Ablations (the paper's tables): each names its own output folder work/localize-<name>/.
+ABLATIONS: dict[str, dict] = {
+    "default": {},
+    "no-rot-prior": {"rotation_prior": False},
+    "no-gravity": {"pnp": {"gravity_deg": None}},
+    "no-priors": {"rotation_prior": False, "pnp": {"gravity_deg": None}},
+    "top1": {"top_k": 1},
+    "render-h150-p45": {"db_heights": (150.0,), "db_paper_pitches": (45.0,)},
+    "render-2h-p45": {"db_paper_pitches": (45.0,)},
+}
+
+
+def settings_for(ablation: str = "default", base: LocalizeSettings = LocalizeSettings()) -> LocalizeSettings:
+    if ablation not in ABLATIONS:
+        raise GtkitError(f"unknown ablation {ablation!r} (choose from {', '.join(ABLATIONS)})")
+    over = dict(ABLATIONS[ablation])
+    if "pnp" in over:
+        over["pnp"] = dataclasses.replace(base.pnp, **over["pnp"])
+    return dataclasses.replace(base, **over)
+
+
+def output_dir(project: Project, ablation: str = "default") -> Path:
+    return project.paths.stage("localize" if ablation == "default" else f"localize-{ablation}")
+
+
+def _settings_from_dict(d: dict) -> LocalizeSettings:
+    d = dict(d)
+    d["features"] = FeatureSettings(**d["features"])
+    d["pnp"] = PnPSettings(**d["pnp"])
+    for k in ("db_heights", "db_paper_pitches"):
+        if d.get(k) is not None:
+            d[k] = tuple(d[k])
+    return LocalizeSettings(**d)
+
+
+# --- offline: database features and global descriptors --------------------------------------
+
+def _db_cache(project: Project, s: LocalizeSettings) -> Path:
+    return project.paths.stage("localize_db") / f"{s.features.extractor}-{settings_key(s.features)[:8]}"
+
+
+def _extractor(fs: FeatureSettings, db: bool):
+    from .features import make_extractor
+
+    return make_extractor(fs.extractor, max_keypoints=fs.max_keypoints_db if db else fs.max_keypoints,
+                          max_side=fs.max_side, contrast_threshold=fs.contrast_threshold)
+
+
+_W: dict = {}
+
+
+def _extract_db_views(task):
+    import cv2
+
+    fs_d, items = task
+    fs = FeatureSettings(**fs_d)
+    key = ("dbx", fs)
+    if _W.get("dbx_key") != key:
+        _W["dbx"] = _extractor(fs, db=True)
+        _W["dbx_key"] = key
+    out = []
+    for name, path in items:
+        img = cv2.imread(path, cv2.IMREAD_COLOR)
+        if img is None:
+            out.append((name, None))
+            continue
+        out.append((name, _W["dbx"].extract(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))))
+    return out
+
+
+def prepare_database(project: Project, db: Database, s: LocalizeSettings, executor: ExecutorSettings) -> dict:
+    """Database features + VLAD codebook + global descriptors, cached; returns seconds by step."""
+    import h5py
+
+    from .descriptors import Vlad
+    from .features import read_features, write_features
+
+    cache = _db_cache(project, s)
+    cache.mkdir(parents=True, exist_ok=True)
+    feats = cache / "features.h5"
+    times = {}
+    t0 = time.perf_counter()
+    try:
+        with h5py.File(feats, "a") as h5:
+            todo = [v for v in db.views if v.name not in h5]
+    except OSError:  # a run killed mid-write: start the feature file again
+        feats.unlink(missing_ok=True)
+        todo = list(db.views)
+    if todo:
+        tasks = [(asdict(s.features), [(v.name, str(v.image)) for v in todo[i:i + 16]])
+                 for i in range(0, len(todo), 16)]
+        ex = make_executor(executor)
+        try:
+            with h5py.File(feats, "a") as h5:
+                for res in run_map(ex, _extract_db_views, tasks, progress="db features"):
+                    for name, f in res:
+                        if f is None:
+                            raise GtkitError("unreadable database image", db.root / "images" / f"{name}.jpg")
+                        write_features(h5, name, f)
+        finally:
+            ex.close()
+    times["db_features_s"] = time.perf_counter() - t0
+    times["db_features_views"] = len(todo)
+    # codebook + global descriptors (keyed by the full database view list)
+    t0 = time.perf_counter()
+    names = sorted(v.name for v in db.views)
+    gkey = settings_key({"names": names, "words": s.vlad_words, "desc": s.descriptor})
+    gfile = cache / f"global-{s.descriptor}{s.vlad_words}-{gkey[:8]}.npz"
+    if not gfile.is_file():
+        with h5py.File(feats, "r") as h5:
+            rng = np.random.default_rng(0)
+            per = max(50, 200_000 // max(1, len(names)))
+            sample = []
+            for n in names:
+                d = h5[n]["desc"][()]
+                if len(d):
+                    sample.append(d[rng.choice(len(d), min(per, len(d)), replace=False)])
+            if not sample:
+                raise GtkitError("database views have no features (textureless model?)", feats)
+            vlad = Vlad.train(np.concatenate(sample), k=s.vlad_words)
+            G = np.stack([vlad.describe(read_features(h5, n).desc) for n in names]).astype(np.float32)
+        with atomic_path(gfile) as tmp, open(tmp, "wb") as f:
+            np.savez(f, centers=vlad.centers, G=G, names=np.array(names))
+    times["db_global_s"] = time.perf_counter() - t0
+    return {"cache": str(cache), "features": str(feats), "global": str(gfile), **times}
+
+
+# --- per query (runs in workers) ------------------------------------------------------------
+
+def query_names(project: Project, s: LocalizeSettings) -> list[str]:
+    imgs = project.paths.images
+    return sorted(p.relative_to(imgs).as_posix() for p in imgs.glob(s.query_glob) if p.is_file())
+
+
+def _context(ctx: dict):
+    """Per-process cache of what every query needs (database, descriptors, extractor, matcher)."""
+    key = json.dumps(ctx, sort_keys=True)
+    if _W.get("ctx_key") != key:
+        import h5py
+
+        from .descriptors import Vlad
+        from .features import make_matcher
+
+        s = _settings_from_dict(ctx["settings"])
+        proj = Project.load(ctx["root"])
+        db = load_database(proj).subset(s.db_heights, s.db_paper_pitches)
+        g = np.load(ctx["global"])
+        index = {n: i for i, n in enumerate(g["names"].tolist())}
+        rows = np.array([index[v.name] for v in db.views], dtype=int)
+        if "h5" in _W:
+            _W["h5"].close()
+        _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=g["G"][rows],
+                  ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
+                  centers=np.array([v.pose.center for v in db.views]).reshape(-1, 3),
+                  h5=h5py.File(ctx["features"], "r"), extractor=_extractor(s.features, db=False),
+                  matcher=make_matcher(s.matcher, ratio=s.ratio), cams=read_intrinsics(proj.paths.cameras))
+    return _W
+
+
+def localize_query(task) -> dict:
+    """Localize one query; never raises for a bad query (the reason goes into the result)."""
+    ctx, name = task
+    t_start = time.perf_counter()
+    try:
+        out = _localize_query(_context(ctx), name)
+    except GtkitError as e:
+        out = {"name": name, "ok": False, "reason": str(e), "seconds": {}}
+    out["seconds_total"] = time.perf_counter() - t_start
+    return out
+
+
+def _localize_query(W: dict, name: str) -> dict:
+    import cv2
+
+    from ..io.exif import read_photo_meta
+    from .features import read_features
+    from .lift import lift
+    from .pnp import gravity_pnp_ransac
+    from .prior import gps_filter, rotation_filter
+
+    s: LocalizeSettings = W["s"]
+    proj: Project = W["project"]
+    db: Database = W["db"]
+    sec = {k: 0.0 for k in STEPS}
+    rec: dict = {"name": name, "ok": False, "reason": None, "seconds": sec}
+    path = proj.paths.images / name
+    if name not in W["cams"]:
+        raise GtkitError(f"no intrinsics for {name}", proj.paths.cameras)
+    cam: Camera = W["cams"][name]
+    meta = read_photo_meta(path)
+    prior_R = None
+    if meta.has_gimbal:
+        rec["prior_ypr"] = [meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll]
+        prior_R = dji_to_rotation(meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll)
+    elif s.rotation_prior or s.pnp.gravity_deg is not None:
+        rec["note"] = "no DJI gimbal angles: rotation prior and gravity check skipped"
+    # features
+    t = time.perf_counter()
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise GtkitError("unreadable query image", path)
+    if (bgr.shape[1], bgr.shape[0]) != (cam.width, cam.height):
+        raise GtkitError(f"image is {bgr.shape[1]}x{bgr.shape[0]} but its intrinsics say {cam.width}x{cam.height}",
+                         path)
+    fq = W["extractor"].extract(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+    sec["features"] = time.perf_counter() - t
+    rec["n_keypoints"] = len(fq)
+    # retrieval
+    t = time.perf_counter()
+    keep = np.ones(len(db.views), bool)
+    if s.rotation_prior and prior_R is not None:
+        keep &= rotation_filter(rec["prior_ypr"], W["ypr"], s.gamma_o)
+    if s.gps_radius_m is not None and meta.has_gps:
+        xy = proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude or 0.0)
+        keep &= gps_filter(np.ravel(xy)[:2], W["centers"], s.gps_radius_m)
+    rec["n_candidates"] = int(keep.sum())
+    if not keep.any():
+        sec["retrieval"] = time.perf_counter() - t
+        rec["reason"] = (f"no database view within {s.gamma_o:g} deg of the IMU prior "
+                         f"(yaw, pitch, roll = {', '.join(f'{a:.1f}' for a in rec.get('prior_ypr', []))})"
+                         if s.rotation_prior and prior_R is not None else "no database view passes the priors")
+        return rec
+    score = W["G"] @ W["vlad"].describe(fq.desc)
+    score[~keep] = -np.inf
+    order = np.argsort(-score)[:min(s.top_k, int(keep.sum()))]
+    rec["retrieved"] = [[db.views[i].name, float(score[i])] for i in order]
+    sec["retrieval"] = time.perf_counter() - t
+    # matching + lifting
+    pin = cam.pinhole_part()
+    uv_q, X_all, per_view = [], [], []
+    for i in order:
+        v = db.views[i]
+        t = time.perf_counter()
+        fd = read_features(W["h5"], v.name)
+        m = W["matcher"].match(fq, fd)
+        sec["matching"] += time.perf_counter() - t
+        t = time.perf_counter()
+        info = {"view": v.name, "n_matches": int(len(m))}
+        depth = db.depth(v) if len(m) else None
+        if len(m) and (depth is None or not np.isfinite(depth).any()):
+            info["problem"] = "database view has no valid depth"
+            info["n_lifted"] = 0
+        elif len(m):
+            X, ok = lift(fd.kp[m[:, 1]], depth, db.camera, v.pose, s.max_rel_jump)
+            info["n_lifted"] = int(ok.sum())
+            uv_q.append(fq.kp[m[ok, 0]])
+            X_all.append(X[ok])
+        else:
+            info["n_lifted"] = 0
+        per_view.append(info)
+        sec["lifting"] += time.perf_counter() - t
+    rec["views"] = per_view
+    n_lift = int(sum(len(x) for x in X_all))
+    rec["n_lifted"] = n_lift
+    t = time.perf_counter()
+    if n_lift == 0:
+        probs = {i.get("problem") for i in per_view} - {None}
+        rec["reason"] = ("no 2D-3D correspondences: " + ("; ".join(sorted(probs)) if probs else
+                         f"{sum(i['n_matches'] for i in per_view)} matches with the retrieved views, none lifted"))
+        return rec
+    uv = np.concatenate(uv_q)
+    X = np.concatenate(X_all)
+    if cam.has_distortion:  # PnP on the undistorted pinhole part
+        uv = pin.world_to_image(cam.image_to_world(uv))
+    g = gravity_in_camera(prior_R) if prior_R is not None else None
+    r = gravity_pnp_ransac(uv, X, pin, g, s.pnp)
+    sec["pnp"] = time.perf_counter() - t
+    rec["pnp"] = r.summary()
+    if not r.ok:
+        rec["reason"] = r.reason
+        return rec
+    rec["ok"] = True
+    rec["q"] = r.pose.q.tolist()
+    rec["t"] = r.pose.t.tolist()
+    return rec
+
+
+# --- the stage ----------------------------------------------------------------------------------
+
+def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSettings(), ablation: str = "default",
+        executor: ExecutorSettings = ExecutorSettings(), force: bool = False) -> Path:
+    """Localize every query; returns the output folder. Skips when settings and inputs match."""
+    project = project if isinstance(project, Project) else Project.load(project)
+    out = output_dir(project, ablation)
+    dbdir = project.paths.stage("render_db")
+    names = query_names(project, settings)
+    if not names:
+        raise GtkitError(f"no query images match {settings.query_glob!r}", project.paths.images)
+    inputs = {"render_db": file_fingerprint(dbdir / "stage.json"), "queries": settings_key(names),
+              "cameras": file_fingerprint(project.paths.cameras)}
+    if not force and stage_done(out, settings, inputs):
+        log.info("localize: up to date (%s)", out)
+        return out
+    t_all = time.perf_counter()
+    db_full = load_database(project)
+    db = db_full.subset(settings.db_heights, settings.db_paper_pitches)
+    if not db.views:
+        raise GtkitError("the database subset chosen by the settings is empty", dbdir)
+    offline = prepare_database(project, db_full, settings, executor)
+    ctx = {"root": str(project.paths.root), "settings": settings_dict(settings),
+           "features": offline["features"], "global": offline["global"]}
+    t0 = time.perf_counter()
+    ex = make_executor(executor)
+    try:
+        results = run_map(ex, localize_query, [(ctx, n) for n in names], progress="localize")
+    finally:
+        ex.close()
+    wall = time.perf_counter() - t0
+    poses = {r["name"]: Pose.from_qt(r["q"], r["t"]) for r in results if r["ok"]}
+    out.mkdir(parents=True, exist_ok=True)
+    write_poses(out / "poses.txt", poses, header=f"gtkit localize ({ablation}); failures are absent, "
+                "see status.json")
+    pairs = [f"{r['name']} {v} {k + 1}" for r in results for k, (v, _s) in enumerate(r.get("retrieved", []))]
+    write_text(out / "pairs.txt", "# query database_view rank\n" + "\n".join(pairs) + "\n")
+    n_ok = len(poses)
+    write_json(out / "status.json", {
+        "ablation": ablation, "settings": settings_dict(settings), "n_queries": len(names), "n_localized": n_ok,
+        "database_views": len(db.views), "offline": offline, "wall_s": wall, "total_s": time.perf_counter() - t_all,
+        "executor": asdict(executor), "queries": results})
+    mark_stage_done(out, settings, inputs, n_queries=len(names), n_localized=n_ok, wall_s=round(wall, 2))
+    log.info("localize (%s): %d of %d queries localized in %.1f s", ablation, n_ok, len(names), wall)
+    return out

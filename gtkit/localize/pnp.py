@@ -1,0 +1,143 @@
+"""Gravity-guided PnP RANSAC (UAVD4L §3.2, after SensLoc).
+
+Minimal samples: P3P (:func:`poselib.p3p`, Lambda Twist) on 3 random 2D-3D matches. Every
+hypothesis whose gravity direction in the camera (:func:`gtkit.conventions.gravity_in_camera`)
+differs from the IMU's by more than ``gravity_deg`` (gamma_eps, 2 deg) is rejected before it is
+scored, so a wrong-but-popular hypothesis can never win. Hypotheses are scored by their inlier
+count (reprojection error below ``max_error_px``). Early stopping: the standard adaptive bound
+``log(1 - confidence) / log(1 - w^3)`` from the inlier ratio ``w`` of the best *gravity-consistent*
+hypothesis (the paper halts early once a gravity-consistent hypothesis is good enough; this is
+that rule made precise). The winner is refined on its inliers (:func:`poselib.refine_absolute_pose`,
+Cauchy loss), inliers re-counted, refined again, and the refined pose's gravity is checked too.
+A failure is a failure: ``pose`` is None and ``reason`` says why.
+
+The 2D points must be pixels of an undistorted pinhole camera (distortion already removed).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import Camera
+from ..conventions import angle_between_deg, gravity_in_camera
+from ..pose import Pose
+
+
+@dataclass(frozen=True)
+class PnPSettings:
+    max_error_px: float = 6.0          # inlier threshold (reprojection error, pixels)
+    gravity_deg: float | None = 2.0    # gamma_eps; None = no gravity check (ablation)
+    min_inliers: int = 25              # fewer inliers = failure
+    min_iterations: int = 100
+    max_iterations: int = 5000
+    confidence: float = 0.9999
+    refine: bool = True
+    seed: int = 0
+
+
+@dataclass
+class PnPResult:
+    pose: Pose | None
+    n_matches: int
+    n_inliers: int = 0
+    inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    iterations: int = 0
+    n_hypotheses: int = 0
+    n_rejected_gravity: int = 0
+    gravity_err_deg: float | None = None
+    reason: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.pose is not None
+
+    def summary(self) -> dict:
+        return {"n_matches": self.n_matches, "n_inliers": self.n_inliers, "iterations": self.iterations,
+                "n_hypotheses": self.n_hypotheses, "n_rejected_gravity": self.n_rejected_gravity,
+                "gravity_err_deg": self.gravity_err_deg}
+
+
+def _errors(R, t, X, uv, K) -> np.ndarray:
+    pc = X @ R.T + t
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * pc[:, 0] / z + K[0, 2]
+        v = K[1, 1] * pc[:, 1] / z + K[1, 2]
+        e = np.hypot(u - uv[:, 0], v - uv[:, 1])
+    return np.where(z > 0, e, np.inf)
+
+
+def gravity_pnp_ransac(uv: np.ndarray, X: np.ndarray, camera: Camera, gravity_prior: np.ndarray | None,
+                       settings: PnPSettings = PnPSettings()) -> PnPResult:
+    """Estimate a world-to-camera pose from pixels ``uv`` (N, 2) of the pinhole ``camera`` and
+    world points ``X`` (N, 3). ``gravity_prior``: the IMU's gravity direction in the camera."""
+    import poselib
+
+    s = settings
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
+    n = len(uv)
+    res = PnPResult(None, n)
+    if n < max(4, s.min_inliers):
+        res.reason = f"too few 2D-3D matches ({n} < {max(4, s.min_inliers)})"
+        return res
+    use_g = s.gravity_deg is not None and gravity_prior is not None
+    g = None if gravity_prior is None else np.asarray(gravity_prior, dtype=np.float64)
+    K = camera.K()
+    xn = camera.image_to_world(uv)
+    b = np.concatenate([xn, np.ones((n, 1))], axis=1)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    rng = np.random.default_rng(s.seed)
+    best_n, best = 0, None
+    needed = s.max_iterations
+    it = 0
+    while it < min(max(s.min_iterations, needed), s.max_iterations):
+        it += 1
+        idx = rng.choice(n, 3, replace=False)
+        for cp in poselib.p3p(b[idx], X[idx]):
+            res.n_hypotheses += 1
+            R, t = np.asarray(cp.R), np.asarray(cp.t)
+            if use_g and angle_between_deg(gravity_in_camera(R), g) > s.gravity_deg:
+                res.n_rejected_gravity += 1
+                continue
+            k = int((_errors(R, t, X, uv, K) < s.max_error_px).sum())
+            if k > best_n:
+                best_n, best = k, (R, t)
+                w = k / n
+                denom = np.log(max(1e-12, 1.0 - w ** 3))
+                needed = int(np.ceil(np.log(1.0 - s.confidence) / denom)) if denom < 0 else 0
+    res.iterations = it
+    if best is None:
+        res.reason = (f"no P3P hypothesis agrees with the IMU gravity within {s.gravity_deg:g} deg "
+                      f"({res.n_rejected_gravity} of {res.n_hypotheses} rejected)" if use_g and res.n_hypotheses
+                      else "no P3P hypothesis")
+        return res
+    R, t = best
+    inl = _errors(R, t, X, uv, K) < s.max_error_px
+    if s.refine and inl.sum() >= 4:
+        cam = {"model": "PINHOLE", "width": camera.width, "height": camera.height,
+               "params": [camera.fx, camera.fy, camera.cx, camera.cy]}
+        for _ in range(2):
+            p0 = poselib.CameraPose()
+            p0.R, p0.t = R, t
+            cp, _info = poselib.refine_absolute_pose(uv[inl], X[inl], p0, cam,
+                                                     {"loss_type": "CAUCHY", "loss_scale": s.max_error_px / 2})
+            R, t = np.asarray(cp.R), np.asarray(cp.t)
+            inl = _errors(R, t, X, uv, K) < s.max_error_px
+    res.inliers = inl
+    res.n_inliers = int(inl.sum())
+    if g is not None:
+        res.gravity_err_deg = angle_between_deg(gravity_in_camera(R), g)
+    if res.n_inliers < s.min_inliers:
+        res.reason = f"too few inliers ({res.n_inliers} < {s.min_inliers}) of {n} matches"
+        return res
+    if use_g and res.gravity_err_deg > s.gravity_deg:
+        res.reason = (f"refined pose disagrees with the IMU gravity by {res.gravity_err_deg:.2f} deg "
+                      f"(> {s.gravity_deg:g})")
+        return res
+    try:
+        res.pose = Pose(R, t)
+    except Exception as e:  # noqa: BLE001 - a degenerate refinement is a failure, not a crash
+        res.reason = f"invalid refined pose ({e})"
+    return res
