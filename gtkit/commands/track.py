@@ -1,0 +1,68 @@
+"""``gtkit track``: target positions from zoom-photo detections, the rig and the DSM.
+
+    gtkit track DIR [--poses FILE] [--detections FILE] [--foot-point bottom_centre|centre] [--no-smooth]
+    gtkit track calibrate DIR        wide/zoom rig calibration -> work/rig/rig.json
+    gtkit track evaluate DIR         against truth/ (sample sites) -> reports/tracking.json + plot
+"""
+from __future__ import annotations
+
+ACTIONS = ("calibrate", "evaluate", "run")
+
+
+def register(sub):
+    p = sub.add_parser("track", help="3D target tracks from zoom-photo detections (ray cast on the DSM); "
+                       "'track calibrate DIR' calibrates the wide/zoom rig, 'track evaluate DIR' scores "
+                       "the tracks against truth/",
+                       description=__doc__.split("\n\n", 1)[1] if "\n\n" in __doc__ else None)
+    p.add_argument("first", metavar="[ACTION] DIR", help="project folder, optionally preceded by "
+                   "calibrate | evaluate | run (default run)")
+    p.add_argument("second", nargs="?", default=None, help=a_help())
+    p.add_argument("--poses", default="", help="wide pose file (name qw qx qy qz tx ty tz); default "
+                   "work/localize/poses.txt; e.g. a pseudo-GT pose file")
+    p.add_argument("--covariances", default="", help="6x6 pose covariances (default: covariances.txt "
+                   "beside the poses, if present; else default sigmas)")
+    p.add_argument("--detections", default="", help="CSV or labelme JSON (default: DIR/targets.csv)")
+    p.add_argument("--foot-point", default="bottom_centre", choices=("bottom_centre", "centre"),
+                   help="which point of a box is the target's ground point (default bottom_centre)")
+    p.add_argument("--no-smooth", action="store_true", help="no RTS-smoothed track")
+    p.add_argument("--force", action="store_true", help="recompute even if up to date")
+    p.set_defaults(func=run)
+
+
+def a_help():
+    return "the project folder when an action is given"
+
+
+def run(args):
+    import json
+
+    from ..errors import GtkitError
+
+    if args.second is not None:
+        action, root = args.first, args.second
+        if action not in ACTIONS:
+            raise GtkitError(f"unknown track action {action!r} (choose {', '.join(ACTIONS)})")
+    else:
+        action, root = "run", args.first
+    if action == "calibrate":
+        from ..track.calibrate import run as calibrate
+
+        rig = calibrate(root, force=args.force)
+        print(json.dumps({k: v for k, v in rig.info.items() if k != "per_pair"}, indent=2))
+        return 0
+    if action == "evaluate":
+        from ..evaluate.tracking import evaluate_tracking
+        from ..project import Paths
+
+        rep = evaluate_tracking(Paths(root))
+        print(json.dumps({k: rep[k] for k in ("n_targets", "n_failed", "median_err_h_m", "median_err_3d_m",
+                                              "recall_h") if k in rep}, indent=2))
+        return 0
+    from ..track.tracker import TrackSettings, run as track
+
+    s = TrackSettings(detections=args.detections, poses=args.poses, covariances=args.covariances,
+                      foot_point=args.foot_point, smooth=not args.no_smooth)
+    summary = track(root, s, force=args.force)
+    print(json.dumps({k: summary[k] for k in ("n_detections", "n_located", "status", "median_sigma_h_m",
+                                              "csv", "geojson")}, indent=2))
+    return 0

@@ -1,0 +1,144 @@
+"""The tracking stage on a small synthetic project: DSM GeoTIFF, rig, poses, detections (issue 8)."""
+import csv
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from gtkit.camera import Camera
+from gtkit.cli import main
+from gtkit.errors import GtkitError
+from gtkit.export.geotiff import write_geotiff
+from gtkit.export.grid import Grid
+from gtkit.geo import GeoFrame
+from gtkit.io.exif import write_jpeg_with_meta
+from gtkit.io.poses import write_poses
+from gtkit.pose import Pose
+from gtkit.project import Project
+from gtkit.track.rig import Rig, ZoomSetting
+from gtkit.track.smoothing import SmoothingSettings, smooth_track
+from gtkit.track.targets import read_detections
+from gtkit.track.tracker import TrackSettings, run
+
+ZOOM = Camera.pinhole(640, 480, 2000.0)
+RIG = Rig(Rotation.from_rotvec(np.radians([0.3, -0.2, 0.1])).as_matrix(), [0.03, -0.02, 0.01], [ZoomSetting(ZOOM)])
+
+
+def ground(x, y):
+    """Gentle slope plus a 25 m block at x in [30, 60], y in [-20, 20]."""
+    z = 0.02 * x + 0.01 * y
+    return np.where((x >= 30) & (x <= 60) & (np.abs(y) <= 20), z + 25.0, z)
+
+
+@pytest.fixture()
+def project(tmp_path):
+    frame = GeoFrame("EPSG:32650", (500000.0, 4000000.0, 50.0))
+    proj = Project.create(tmp_path / "site", frame)
+    P = proj.paths
+    grid = Grid(-200.0, 200.0, 1.0, 400, 400)
+    xc, yc = grid.centres()
+    X, Y = np.meshgrid(xc, yc)
+    write_geotiff(P.dsm, (ground(X, Y) + frame.origin[2]).astype(np.float32), grid, frame.crs, frame.origin,
+                  nodata=-9999.0)
+    RIG.save(P.rig)
+    rng = np.random.default_rng(3)
+    poses, rows, truth = {}, [], {}
+    targets = [np.array([x, y, 0.0]) for x, y in ((-40, 10), (-10, -30), (20, 5), (45, 0), (-60, -60))]
+    for k, X in enumerate(targets):
+        X[2] = float(ground(X[0], X[1]))
+        # wide camera 120 m up, 45 deg down, aimed so the zoom sees the target near its centre
+        yaw = rng.uniform(-180, 180)
+        R = Pose.from_dji(yaw, -45.0, 0.0, [0, 0, 0]).R
+        fwd = R.T @ np.array([0, 0, 1.0])
+        C = X - fwd * (120 / np.sin(np.radians(45))) + rng.normal(0, 2, 3)
+        wide = Pose.from_center(R, C)
+        name = f"queries/seq1/{k:04d}"
+        poses[name + "_W.jpg"] = wide
+        uv, _ = ZOOM.project(RIG.zoom_pose(wide).transform(X[None])[0:1])
+        rows.append([name + "_Z.jpg", *uv[0], "car", f"{100.0 + 2 * k}"])
+        truth[name + "_Z.jpg"] = X
+    # one zoom photo pointing above the horizon, one whose wide photo was not localized
+    up = Pose.from_dji(0.0, 10.0, 0.0, [0, 0, 120.0])
+    poses["queries/seq1/0005_W.jpg"] = up
+    rows.append(["queries/seq1/0005_Z.jpg", 320.0, 240.0, "car", "110"])
+    rows.append(["queries/seq1/0006_Z.jpg", 320.0, 240.0, "car", "112"])
+    for k in range(7):
+        for s in "WZ":
+            write_jpeg_with_meta(P.query_images / "seq1" / f"{k:04d}_{s}.jpg", np.zeros((480, 640, 3), np.uint8),
+                                 timestamp=f"2026:05:14 16:30:{k:02d}")
+    write_poses(P.stage("localize") / "poses.txt", poses)
+    with open(P.detections, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["image", "x", "y", "label", "time"])
+        w.writerows(rows)
+    return proj, truth
+
+
+def _read(path):
+    return list(csv.DictReader(line for line in open(path) if not line.startswith("#")))
+
+
+def test_track_stage_places_targets_and_reports_misses(project):
+    proj, truth = project
+    summary = run(proj, TrackSettings())
+    P = proj.paths
+    rows = {r["image"]: r for r in _read(P.tracks)}
+    assert summary["n_located"] == 5 and summary["status"]["miss_sky"] == 1 and summary["status"]["no_pose"] == 1
+    for name, X in truth.items():
+        r = rows[name]
+        est = np.array([float(r["x"]), float(r["y"]), float(r["z"])]) - np.array(proj.frame.origin)
+        assert np.linalg.norm(est - X) < 0.03, (name, est, X)
+        assert 0.05 < float(r["sigma_h_m"]) < 10
+        lon, lat = float(r["lon"]), float(r["lat"])
+        assert np.allclose(proj.frame.wgs84_to_local(lon, lat, float(r["h"])), est, atol=0.01)
+    sky = rows["queries/seq1/0005_Z.jpg"]
+    assert sky["status"] == "miss_sky" and "horizon" in sky["message"] and sky["x"] == "" and sky["lon"] == ""
+    nop = rows["queries/seq1/0006_Z.jpg"]
+    assert nop["status"] == "no_pose" and "0006_W.jpg" in nop["message"] and nop["x"] == ""
+    gj = json.loads(P.tracks.with_suffix(".geojson").read_text())
+    pts = [f for f in gj["features"] if f["geometry"]["type"] == "Point"]
+    assert len(pts) == 5 and all(-180 < f["geometry"]["coordinates"][0] < 180 for f in pts)
+    # the block's roof is hit where the target stands on it (first crossing, not the ground behind)
+    roof = rows["queries/seq1/0003_Z.jpg"]
+    assert float(roof["z"]) - proj.frame.origin[2] > 24
+    # second run resumes; the CLI works and errors name the file
+    assert run(proj, TrackSettings())["n_located"] == 5
+    assert main(["track", str(P.root), "--force", "--no-smooth"]) == 0
+
+
+def test_bad_detection_input_names_the_file(tmp_path):
+    p = tmp_path / "dets.csv"
+    p.write_text("image,x\nqueries/a_Z.jpg,3\n")
+    with pytest.raises(GtkitError, match="dets.csv"):
+        read_detections(p)
+    p.write_text("image,xmin,ymin,xmax,ymax\nqueries/a_Z.jpg,10,20,5,40\n")
+    with pytest.raises(GtkitError, match="dets.csv: line 2"):
+        read_detections(p)
+    p.write_text("image,x,y,label,time\nqueries/a_Z.jpg,10,20,car,yesterday\n")
+    with pytest.raises(GtkitError, match="time"):
+        read_detections(p)
+    j = tmp_path / "a.json"
+    j.write_text("{not json")
+    with pytest.raises(GtkitError, match="a.json"):
+        read_detections(j)
+    j.write_text(json.dumps({"imagePath": "a_Z.jpg", "shapes": [
+        {"label": "person", "points": [[10, 20], [30, 80]], "shape_type": "rectangle"},
+        {"label": "car", "points": [[5, 6]], "shape_type": "point"}]}))
+    d = read_detections(j)
+    assert (d[0].u, d[0].v, d[0].label) == (20.0, 80.0, "person")  # bottom centre
+    assert (d[1].u, d[1].v) == (5.0, 6.0)
+    assert read_detections(j, "centre")[0].v == 50.0
+
+
+def test_rts_smoother_reduces_noise_on_a_constant_velocity_track():
+    rng = np.random.default_rng(0)
+    t = np.arange(0, 40, 2.0)
+    true = np.column_stack([5 * t, -3 * t, np.zeros_like(t)])
+    meas = true + rng.normal(0, 2.0, true.shape)
+    meas[7] += [40, 0, 0]  # a gross outlier is gated
+    sm = smooth_track(t, meas, [np.eye(3) * 4.0] * len(t), SmoothingSettings(accel_sigma=0.3))
+    raw = np.median(np.linalg.norm((meas - true)[:, :2], axis=1))
+    smo = np.median(np.linalg.norm((sm["points"] - true)[:, :2], axis=1))
+    assert sm["outlier"][7] and sm["outlier"].sum() == 1
+    assert smo < 0.6 * raw
