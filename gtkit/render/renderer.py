@@ -118,8 +118,9 @@ def gl_context():
 
 
 class _Part:
-    def __init__(self, ctx, prog, part, mode: int):
-        self.offset = part.vertices.mean(0)  # keep float32 vertex values small
+    def __init__(self, ctx, prog, part, mode: int, origin=None):
+        # keep float32 vertex values small; a shared ``origin`` makes split meshes render identically
+        self.offset = part.vertices.mean(0) if origin is None else np.asarray(origin, dtype=np.float64)
         v = (part.vertices - self.offset).astype("f4")
         n = len(v)
         uv = part.uv.astype("f4") if part.uv is not None else np.zeros((n, 2), "f4")
@@ -181,20 +182,34 @@ class Renderer:
                 raise GtkitError(f"shader failed to compile: {e}") from None
         return self._progs[key]
 
-    def add_mesh(self, mesh: Mesh, procedural_glsl: str | None = None) -> list[int]:
-        """Upload a mesh; returns the ids of its parts. ``procedural_glsl`` shades every part."""
+    def add_mesh(self, mesh: Mesh, procedural_glsl: str | None = None, origin=None) -> list[int]:
+        """Upload a mesh; returns the ids of its parts. ``procedural_glsl`` shades every part.
+        ``origin`` (world point, optional) is subtracted from vertices before the float32
+        upload instead of each part's mean: pieces of one mesh uploaded with the same origin
+        render bit-identically to the whole mesh uploaded with it."""
         prog = self._program(procedural_glsl)
         ids = []
         for part in mesh.parts:
             mode = 2 if procedural_glsl else (0 if part.texture is not None and part.uv is not None else 1)
-            self._parts.append(_Part(self.ctx, prog, part, mode))
+            self._parts.append(_Part(self.ctx, prog, part, mode, origin))
             ids.append(len(self._parts) - 1)
         return ids
 
     def clear(self) -> None:
         for p in self._parts:
-            p.release()
+            if p is not None:
+                p.release()
         self._parts = []
+
+    def remove_parts(self, ids) -> None:
+        """Free the GPU memory of some parts (tile streaming); their ids are never reused."""
+        for i in ids:
+            if self._parts[i] is not None:
+                self._parts[i].release()
+                self._parts[i] = None
+
+    def _live(self) -> list[int]:
+        return [i for i, p in enumerate(self._parts) if p is not None]
 
     def release(self) -> None:
         self.clear()
@@ -206,12 +221,12 @@ class Renderer:
 
     @property
     def n_triangles(self) -> int:
-        return sum(p.n_triangles for p in self._parts)
+        return sum(p.n_triangles for p in self._parts if p is not None)
 
     def bounds(self) -> np.ndarray:
-        if not self._parts:
+        if not self._live():
             raise GtkitError("renderer has no mesh")
-        b = np.stack([p.bounds for p in self._parts])
+        b = np.stack([p.bounds for p in self._parts if p is not None])
         return np.stack([b[:, 0].min(0), b[:, 1].max(0)])
 
     # --- targets -------------------------------------------------------------------
@@ -291,7 +306,7 @@ class Renderer:
     def render(self, camera: Camera, pose: Pose, *, lighting: Lighting = NO_LIGHT, with_rgb: bool = True,
                parts: list[int] | None = None, near: float | None = None, far: float | None = None) -> RenderResult:
         """RGB (uint8) and depth (float32 metres along the optical axis, NaN = background)."""
-        parts = list(range(len(self._parts))) if parts is None else parts
+        parts = self._live() if parts is None else parts
         if not parts:
             raise GtkitError("renderer has no mesh to draw")
         pin = camera.pinhole_part()
@@ -312,7 +327,7 @@ class Renderer:
         Pixel (i, j) covers x in [xmin + j*gsd, xmin + (j+1)*gsd], y from ymax downward; its
         value is sampled at the pixel centre. Large rasters are rendered in tiles.
         """
-        parts = list(range(len(self._parts))) if parts is None else parts
+        parts = self._live() if parts is None else parts
         W = int(round((xmax - xmin) / gsd))
         H = int(round((ymax - ymin) / gsd))
         if W <= 0 or H <= 0:

@@ -1,0 +1,206 @@
+"""Tile streaming over :class:`gtkit.render.renderer.Renderer`: upload only the tiles a view sees.
+
+For a perspective view the tiles whose world bounding box meets the camera frustum are chosen
+(each box's eight corners tested against the four side planes and the near plane; a box is
+dropped only when all its corners are outside one plane, so the test never loses a visible
+tile). For a top-down extent the tiles whose box meets the extent are chosen. Tiles are read
+from disk when first needed and kept in least-recently-used order; after each view, tiles
+beyond ``budget_mb`` (GPU bytes: vertices, indices, textures with mipmaps) that the view did not
+use are evicted. A single view that needs more than the budget still renders (the budget is
+then exceeded for that view only, with a warning).
+
+All tiles are uploaded relative to one origin (the model's centre), so a view rendered from
+tiles is bit-identical to the whole model uploaded with that origin (see
+``Renderer.add_mesh(origin=...)``). Near and far planes come from the whole model's bounds,
+as a renderer holding the whole model would choose them.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Camera
+from ..io.tiled import TiledModel
+from ..pose import Pose
+from .renderer import NO_LIGHT, Lighting, Renderer, RenderResult
+
+log = logging.getLogger(__name__)
+
+
+def near_far(bounds: np.ndarray, pose: Pose) -> tuple[float, float]:
+    """Near/far planes for a view of a box, chosen as the renderer chooses them for its mesh."""
+    lo, hi = bounds
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    z = pose.transform(corners)[:, 2]
+    far = max(float(z.max()) * 1.01, 1.0)
+    c = pose.center
+    dist = float(np.linalg.norm(np.maximum(0, np.maximum(lo - c, c - hi))))
+    near = float(np.clip(dist * 0.9, 0.05, far / 10.0))
+    return near, far
+
+
+def boxes_in_frustum(boxes: np.ndarray, camera: Camera, pose: Pose, margin: float = 0.05,
+                     far: float | None = None) -> np.ndarray:
+    """(N, 2, 3) world boxes -> (N,) bool: may the box be seen by the camera?
+
+    ``margin`` widens the image by that fraction on every side (covers lens distortion)."""
+    lo, hi = boxes[:, 0], boxes[:, 1]
+    sel = np.array([[0, 0, 0], [0, 0, 1], [0, 1, 0], [0, 1, 1], [1, 0, 0], [1, 0, 1], [1, 1, 0], [1, 1, 1]])
+    corners = np.where(sel[None, :, :] == 0, lo[:, None, :], hi[:, None, :])  # (N, 8, 3)
+    pc = corners @ pose.R.T + pose.t
+    x, y, z = pc[..., 0], pc[..., 1], pc[..., 2]
+    W, H = camera.width, camera.height
+    u0, u1 = -margin * W, (1 + margin) * W
+    v0, v1 = -margin * H, (1 + margin) * H
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    # u = fx x/z + cx >= u0  <=>  fx x + (cx - u0) z >= 0 (z > 0), and so on
+    planes = [z - 1e-6,
+              fx * x + (cx - u0) * z, (u1 - cx) * z - fx * x,
+              fy * y + (cy - v0) * z, (v1 - cy) * z - fy * y]
+    if far is not None:
+        planes.append(far - z)
+    outside = np.zeros(len(boxes), bool)
+    for d in planes:
+        outside |= np.all(d < 0, axis=1)
+    return ~outside
+
+
+@dataclass
+class _Resident:
+    ids: list[int]
+    nbytes: int
+
+
+@dataclass
+class StreamStats:
+    tiles_drawn: int = 0
+    tiles_loaded: int = 0        # read from disk for this view
+    tiles_evicted: int = 0
+    resident_tiles: int = 0
+    resident_mb: float = 0.0
+    load_s: float = 0.0
+    render_s: float = 0.0
+
+
+def _part_bytes(mesh) -> int:
+    n = 0
+    for p in mesh.parts:
+        n += len(p.vertices) * 9 * 4 + p.faces.size * 4
+        if p.texture is not None:
+            n += int(p.texture.shape[0] * p.texture.shape[1] * 3 * 4 / 3)  # + mipmaps
+    return n
+
+
+class TileStreamer:
+    """Render views of a :class:`TiledModel`, keeping only the tiles in use on the GPU."""
+
+    def __init__(self, model: TiledModel, budget_mb: float = 512.0, renderer: Renderer | None = None,
+                 procedural_glsl: str | None = None):
+        self.model = model
+        self.budget = int(budget_mb * 2**20)
+        self.renderer = renderer or Renderer()
+        self.glsl = procedural_glsl
+        self.origin = model.bounds().mean(0)
+        self._names = model.names
+        self._boxes = np.stack([model.tiles[n].bounds for n in self._names])
+        self._resident: OrderedDict[str, _Resident] = OrderedDict()
+        self.stats = StreamStats()
+
+    # --- selection --------------------------------------------------------------------------
+    def visible_tiles(self, camera: Camera, pose: Pose, margin: float = 0.05) -> list[str]:
+        m = margin + (0.1 if camera.has_distortion else 0.0)
+        keep = boxes_in_frustum(self._boxes, camera, pose, m)
+        return [n for n, k in zip(self._names, keep) if k]
+
+    def tiles_in_extent(self, xmin: float, ymin: float, xmax: float, ymax: float) -> list[str]:
+        return self.model.tiles_in_box([xmin, ymin], [xmax, ymax])
+
+    # --- residency --------------------------------------------------------------------------
+    @property
+    def resident(self) -> list[str]:
+        return list(self._resident)
+
+    @property
+    def resident_bytes(self) -> int:
+        return sum(r.nbytes for r in self._resident.values())
+
+    def _ensure(self, names: list[str]) -> list[int]:
+        ids = []
+        for n in names:
+            r = self._resident.get(n)
+            if r is None:
+                t0 = time.perf_counter()
+                mesh = self.model.load_tile(n)
+                r = _Resident(self.renderer.add_mesh(mesh, self.glsl, origin=self.origin), _part_bytes(mesh))
+                del mesh
+                self._resident[n] = r
+                self.stats.tiles_loaded += 1
+                self.stats.load_s += time.perf_counter() - t0
+            self._resident.move_to_end(n)
+            ids += r.ids
+        return ids
+
+    def _evict(self, keep: set[str]) -> None:
+        total = self.resident_bytes
+        for n in list(self._resident):
+            if total <= self.budget:
+                break
+            if n in keep:
+                continue
+            r = self._resident.pop(n)
+            self.renderer.remove_parts(r.ids)
+            total -= r.nbytes
+            self.stats.tiles_evicted += 1
+        if total > self.budget:
+            log.warning("view needs %.0f MB of tiles, above the %.0f MB budget", total / 2**20, self.budget / 2**20)
+
+    def _begin(self) -> None:
+        self.stats = StreamStats()
+
+    def _end(self, names) -> None:
+        self._evict(set(names))
+        self.stats.tiles_drawn = len(names)
+        self.stats.resident_tiles = len(self._resident)
+        self.stats.resident_mb = self.resident_bytes / 2**20
+
+    # --- views ------------------------------------------------------------------------------
+    def render(self, camera: Camera, pose: Pose, *, lighting: Lighting = NO_LIGHT,
+               with_rgb: bool = True) -> RenderResult:
+        """RGB + depth of a perspective view, drawing only the tiles in the frustum."""
+        self._begin()
+        names = self.visible_tiles(camera, pose)
+        ids = self._ensure(names)
+        t0 = time.perf_counter()
+        if ids:
+            n, f = near_far(self.model.bounds(), pose)
+            out = self.renderer.render(camera, pose, lighting=lighting, with_rgb=with_rgb, parts=ids, near=n, far=f)
+        else:
+            out = RenderResult(np.zeros((camera.height, camera.width, 3), np.uint8) if with_rgb else None,
+                               np.full((camera.height, camera.width), np.nan, np.float32))
+        self.stats.render_s = time.perf_counter() - t0
+        self._end(names)
+        return out
+
+    def render_ortho(self, xmin: float, ymin: float, xmax: float, ymax: float, gsd: float, *,
+                     lighting: Lighting = NO_LIGHT, with_rgb: bool = True, tile: int = 2048) -> RenderResult:
+        """Top-down RGB + highest height of an extent, drawing only the tiles that meet it."""
+        self._begin()
+        names = self.tiles_in_extent(xmin, ymin, xmax, ymax)
+        ids = self._ensure(names)
+        t0 = time.perf_counter()
+        out = self.renderer.render_ortho(xmin, ymin, xmax, ymax, gsd, lighting=lighting, with_rgb=with_rgb,
+                                         parts=ids, tile=tile) if ids else None
+        if out is None:
+            W, H = int(round((xmax - xmin) / gsd)), int(round((ymax - ymin) / gsd))
+            out = RenderResult(np.zeros((H, W, 3), np.uint8) if with_rgb else None, np.full((H, W), np.nan, np.float32))
+        self.stats.render_s = time.perf_counter() - t0
+        self._end(names)
+        return out
+
+    def release(self) -> None:
+        self.renderer.remove_parts([i for r in self._resident.values() for i in r.ids])
+        self._resident.clear()
