@@ -59,7 +59,7 @@ class Paths:
     ortho = property(lambda s: s.root / "exports" / "ortho.tif")      # gtkit export ortho
     mesh_export = property(lambda s: s.root / "exports" / "mesh")     # gtkit export mesh
     coordinates = property(lambda s: s.root / "exports" / "coordinates")  # gtkit export coords
-    detections = property(lambda s: s.root / "targets.csv")          # target detections (gtkit track input)
+    detections = property(lambda s: s.root / "detections.csv")       # target detections (gtkit track input)
     rig = property(lambda s: s.root / "work" / "rig" / "rig.json")    # gtkit track calibrate
     tracks = property(lambda s: s.root / "exports" / "tracks.csv")   # gtkit track (+ tracks.geojson)
     tracking_report = property(lambda s: s.root / "reports" / "tracking.json")  # gtkit track evaluate

@@ -21,7 +21,7 @@ def register(sub):
                    "work/localize/poses.txt; e.g. a pseudo-GT pose file")
     p.add_argument("--covariances", default="", help="6x6 pose covariances (default: covariances.txt "
                    "beside the poses, if present; else default sigmas)")
-    p.add_argument("--detections", default="", help="CSV or labelme JSON (default: DIR/targets.csv)")
+    p.add_argument("--detections", default="", help="CSV or labelme JSON (default: DIR/detections.csv)")
     p.add_argument("--foot-point", default="bottom_centre", choices=("bottom_centre", "centre"),
                    help="which point of a box is the target's ground point (default bottom_centre)")
     p.add_argument("--no-smooth", action="store_true", help="no RTS-smoothed track")

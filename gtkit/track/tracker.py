@@ -44,7 +44,7 @@ STAGE = "track"
 
 @dataclass
 class TrackSettings:
-    detections: str = ""           # CSV / labelme JSON / folder; "" = the project's targets.csv
+    detections: str = ""           # CSV / labelme JSON / folder; "" = the project's detections.csv
     poses: str = ""                # wide poses (world-to-camera); "" = work/localize/poses.txt
     covariances: str = ""          # 6x6 pose covariances; "" = covariances.txt beside the poses, if any
     foot_point: str = "bottom_centre"  # box bottom centre (ground contact) or "centre" (see targets.py)
