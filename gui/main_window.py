@@ -203,8 +203,8 @@ class MainWindow(QMainWindow):
                 "tiepoints": self.tiepoints.session_state(), "review": self.review.session_state()}
 
     def schedule_session_save(self):
-        if not self._restoring:
-            self._save_timer.start()
+        if not self._restoring and not self._save_timer.isActive():
+            self._save_timer.start()  # at most one write per interval, also during a burst of edits
 
     def save_session(self):
         save_session(self.paths, self.session_state())

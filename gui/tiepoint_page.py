@@ -196,6 +196,7 @@ class TiePointPage(QWidget):
         self.active = tp_id
         self.undo.push(PlaceObservation(self.store, tp_id, image, x, y))
         self.status.emit(f"{tp_id}: placed in {image} at ({x:.1f}, {y:.1f}); saved")
+        self.session_changed.emit()
         return tp_id
 
     def delete_active(self):
@@ -339,7 +340,7 @@ class TiePointPage(QWidget):
         for view, image in ((self.qview, self.query), (self.rview, self.reference)):
             o = self.store.observation(tp_id, image)
             if o:
-                view.center_on(o.x, o.y, zoom=max(view.zoom(), 1.0))
+                view.center_on(o.x, o.y, zoom=max(view.zoom(), 2.0))
         self.refresh()
         self.session_changed.emit()
 
