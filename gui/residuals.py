@@ -1,8 +1,18 @@
-"""Tie-point residuals after registration, as the register stage reports them (if it has run).
+"""Tie-point residuals after registration, for the annotator's "worst first" list.
 
-Accepted shapes of ``work/register/tiepoint_residuals.json`` (the first that matches):
-``{"tiepoints": [{"id", "residual_px", "inlier"?, "observations"?: [{"image", "residual_px"}]}]}``,
-``{"tiepoints": {"tp1": {...} | 1.2}}`` or a plain ``{"tp1": 1.2}``. Missing file = no residuals.
+Sources, first that exists:
+
+1. ``work/register/tiepoint_residuals.json`` (per tie point, if a stage writes one), in one of
+   the shapes ``{"tiepoints": [{"id", "residual_px", "inlier"?, "observations"?: [{"image",
+   "residual_px"}]}]}``, ``{"tiepoints": {"tp1": {...} | 1.2}}`` or ``{"tp1": 1.2}``;
+2. computed here from the register stage's pseudo-GT poses (``work/register/poses.txt`` +
+   ``intrinsics.txt``) and the reference block's poses (``work/sfm_reference/poses.txt`` +
+   ``intrinsics.txt``): each tie point is triangulated from all its clicks in posed photos
+   (linear least squares), and each click's reprojection error in pixels is its residual;
+   the tie point's residual is its largest click residual. Tie points that
+   ``work/register/registration.json`` lists under ``bad_tiepoints`` are marked outliers.
+
+No file = no residuals (the list then shows tie points in id order). No Qt here.
 """
 from __future__ import annotations
 
@@ -11,9 +21,14 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from gtkit.errors import GtkitError
+
 log = logging.getLogger(__name__)
 
-CANDIDATES = ("tiepoint_residuals.json", "tiepoints_residuals.json", "residuals.json")
+CANDIDATES = ("tiepoint_residuals.json", "tiepoints_residuals.json")
+REGISTER, REFERENCE_BLOCK = "register", "sfm_reference"  # stage names of gtkit.sfm (no pycolmap import here)
 
 
 @dataclass
@@ -21,10 +36,11 @@ class Residual:
     residual_px: float
     inlier: bool | None = None
     per_image: dict[str, float] = field(default_factory=dict)
+    reason: str = ""
 
 
 def residual_file(paths) -> Path | None:
-    d = paths.stage("register")
+    d = paths.stage(REGISTER)
     return next((d / n for n in CANDIDATES if (d / n).is_file()), None)
 
 
@@ -55,11 +71,7 @@ def _one(rec) -> Residual | None:
     return Residual(r, None if inl is None else bool(inl), per)
 
 
-def read_residuals(paths) -> dict[str, Residual]:
-    """tie-point id -> residual; empty when the register stage has not written any."""
-    f = residual_file(paths)
-    if f is None:
-        return {}
+def _from_file(f: Path) -> dict[str, Residual]:
     try:
         d = json.loads(f.read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError) as e:
@@ -78,4 +90,64 @@ def read_residuals(paths) -> dict[str, Residual]:
             r = _one(rec)
             if r is not None:
                 out[str(k)] = r
+    return out
+
+
+def triangulate(cams: list, poses: list, uv: np.ndarray) -> np.ndarray:
+    """A 3D point from >= 2 posed pixel observations (linear least squares on rays)."""
+    A, b = [], []
+    for cam, pose, p in zip(cams, poses, uv):
+        d = pose.R.T @ cam.rays(np.asarray(p, float))
+        C = pose.center
+        M = np.eye(3) - np.outer(d, d)  # distance of X to the ray through C along d
+        A.append(M)
+        b.append(M @ C)
+    return np.linalg.lstsq(np.concatenate(A), np.concatenate(b), rcond=None)[0]
+
+
+def computed_residuals(paths, tiepoints) -> dict[str, Residual]:
+    """Reprojection residuals of every click under the registered poses (module docstring)."""
+    from gtkit.io.poses import read_intrinsics, read_poses
+
+    poses, cams = {}, {}
+    for stage in (REFERENCE_BLOCK, REGISTER):
+        d = paths.stage(stage)
+        if (d / "poses.txt").is_file() and (d / "intrinsics.txt").is_file():
+            try:
+                poses.update(read_poses(d / "poses.txt"))
+                cams.update(read_intrinsics(d / "intrinsics.txt"))
+            except GtkitError as e:
+                log.warning("%s", e)
+    if not (paths.stage(REGISTER) / "poses.txt").is_file():
+        return {}
+    out = {}
+    for tp in tiepoints:
+        obs = [o for o in tp.observations if o.image in poses and o.image in cams]
+        if len(obs) < 2 or not any(o.image.startswith("queries/") for o in obs):
+            continue
+        cs, ps = [cams[o.image] for o in obs], [poses[o.image] for o in obs]
+        uv = np.array([[o.x, o.y] for o in obs])
+        X = triangulate(cs, ps, uv)
+        per = {}
+        for o, c, p, u in zip(obs, cs, ps, uv):
+            proj, front = c.project(p.transform(X[None]))
+            per[o.image] = float(np.linalg.norm(proj[0] - u)) if front[0] else float("inf")
+        out[tp.id] = Residual(max(per.values()), None, per)
+    return out
+
+
+def read_residuals(paths, tiepoints=()) -> dict[str, Residual]:
+    """tie-point id -> residual (see the module docstring); empty when there is nothing to show."""
+    f = residual_file(paths)
+    out = _from_file(f) if f is not None else computed_residuals(paths, tiepoints)
+    reg = paths.stage(REGISTER) / "registration.json"
+    if out and reg.is_file():
+        try:
+            bad = json.loads(reg.read_text(encoding="utf-8")).get("bad_tiepoints", {}) or {}
+        except (OSError, json.JSONDecodeError):
+            bad = {}
+        for tid, info in bad.items():
+            if tid in out:
+                out[tid].inlier = False
+                out[tid].reason = str(info.get("reason", "")) if isinstance(info, dict) else ""
     return out

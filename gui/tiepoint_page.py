@@ -56,7 +56,7 @@ class TiePointPage(QWidget):
         self.active: str | None = None
         self.suggestions: list = []
         self.suggestion_index = 0
-        self.residuals = read_residuals(paths)
+        self.residuals = read_residuals(paths, store.tiepoints)
         self.queries = self._list_images(paths.query_images, "queries")
         self.references = self._list_images(paths.reference_images, "reference")
 

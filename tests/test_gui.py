@@ -271,3 +271,34 @@ def test_review_modes_and_verdicts_saved(qtbot, demo):
     w2 = _window(qtbot, demo)  # pose file and mode come back from the session
     assert w2.tabs.currentIndex() == 1 and w2.review.mode == "checker"
     w2.close()
+
+
+def test_residuals_computed_from_registered_poses_flag_the_bad_click(demo):
+    from gtkit.io.poses import write_intrinsics, write_poses
+    from gtkit.io.tiepoints import Observation, TiePoint
+    from gtkit.project import Paths
+    from gui.residuals import read_residuals
+
+    poses, cams = read_poses(demo / "truth/poses.txt"), read_intrinsics(demo / "truth/intrinsics.txt")
+    P = Paths(demo)
+    q = {n: p for n, p in poses.items() if n.startswith("queries/")}
+    r = {n: p for n, p in poses.items() if n.startswith("reference/")}
+    write_poses(P.stage("register") / "poses.txt", q)  # as the register stage names them
+    write_intrinsics(P.stage("register") / "intrinsics.txt", {n: cams[n] for n in q})
+    write_poses(P.stage("sfm_reference") / "poses.txt", r)
+    write_intrinsics(P.stage("sfm_reference") / "intrinsics.txt", {n: cams[n] for n in r})
+    rng = np.random.default_rng(5)
+    tps = []
+    for i in range(6):
+        X = np.array([*rng.uniform(-20, 20, 2), 0.0])
+        obs = []
+        for n in (Q0, "reference/R01_000_N.jpg", "reference/R01_000_F.jpg"):
+            uv, _ = cams[n].project(poses[n].transform(X[None]))
+            obs.append(Observation(n, *(uv[0] + rng.normal(0, 0.3, 2))))
+        tps.append(TiePoint(f"tp{i:05d}", obs))
+    tps[2].observations[1].x += 20.0  # a click 20 px off
+    res = read_residuals(P, tps)
+    assert set(res) == {t.id for t in tps}
+    worst = max(res, key=lambda k: res[k].residual_px)
+    assert worst == "tp00002" and res[worst].residual_px > 5.0
+    assert max(v.residual_px for k, v in res.items() if k != worst) < 1.5
