@@ -62,6 +62,7 @@ class LocalizeSettings:
     max_rel_jump: float = 0.03         # depth discontinuity test for lifting (relative)
     pnp: PnPSettings = PnPSettings()   # gravity_deg = gamma_eps = 2 (paper); None = no check
     db_heights: tuple[float, ...] | None = None        # use only these database levels
+    db_highest_only: bool = False                      # use only the highest database level
     db_paper_pitches: tuple[float, ...] | None = None  # use only these paper pitches (0 = nadir)
     query_glob: str = "queries/*/*_W.jpg"              # relative to images/
 
@@ -73,8 +74,8 @@ ABLATIONS: dict[str, dict] = {
     "no-gravity": {"pnp": {"gravity_deg": None}},
     "no-priors": {"rotation_prior": False, "pnp": {"gravity_deg": None}},
     "top1": {"top_k": 1},
-    "render-h150-p45": {"db_heights": (150.0,), "db_paper_pitches": (45.0,)},
-    "render-2h-p45": {"db_paper_pitches": (45.0,)},
+    "render-1h-p45": {"db_highest_only": True, "db_paper_pitches": (45.0,)},   # paper: H=150, pitch 45
+    "render-2h-p45": {"db_paper_pitches": (45.0,)},                           # paper: H=150 & 100, pitch 45
 }
 
 
@@ -89,6 +90,15 @@ def settings_for(ablation: str = "default", base: LocalizeSettings = LocalizeSet
 
 def output_dir(project: Project, ablation: str = "default") -> Path:
     return project.paths.stage("localize" if ablation == "default" else f"localize-{ablation}")
+
+
+def select_views(db: Database, s: "LocalizeSettings") -> Database:
+    """The database subset a run uses (render ablations)."""
+    sub = db.subset(s.db_heights, s.db_paper_pitches)
+    if s.db_highest_only and sub.views:
+        top = max(v.height for v in sub.views)
+        sub = sub.subset((top,), None)
+    return sub
 
 
 def _settings_from_dict(d: dict) -> LocalizeSettings:
@@ -211,7 +221,7 @@ def _context(ctx: dict):
 
         s = _settings_from_dict(ctx["settings"])
         proj = Project.load(ctx["root"])
-        db = load_database(proj).subset(s.db_heights, s.db_paper_pitches)
+        db = select_views(load_database(proj), s)
         g = np.load(ctx["global"])
         index = {n: i for i, n in enumerate(g["names"].tolist())}
         rows = np.array([index[v.name] for v in db.views], dtype=int)
@@ -324,7 +334,8 @@ def _localize_query(W: dict, name: str) -> dict:
     if n_lift == 0:
         probs = {i.get("problem") for i in per_view} - {None}
         rec["reason"] = ("no 2D-3D correspondences: " + ("; ".join(sorted(probs)) if probs else
-                         f"{sum(i['n_matches'] for i in per_view)} matches with the retrieved views, none lifted"))
+                         f"{sum(i['n_matches'] for i in per_view)} matches with the retrieved views "
+                         f"(query has {len(fq)} keypoints), none lifted"))
         return rec
     uv = np.concatenate(uv_q)
     X = np.concatenate(X_all)
@@ -361,7 +372,7 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
         return out
     t_all = time.perf_counter()
     db_full = load_database(project)
-    db = db_full.subset(settings.db_heights, settings.db_paper_pitches)
+    db = select_views(db_full, settings)
     if not db.views:
         raise GtkitError("the database subset chosen by the settings is empty", dbdir)
     offline = prepare_database(project, db_full, settings, executor)
