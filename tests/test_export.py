@@ -71,7 +71,25 @@ def _box(b):
     return V, np.array(F)
 
 
-def scene_mesh(n=24, tex=512, seed=0) -> Mesh:
+def texture_rgb(u, v):
+    """The terrain's colour at texture coordinates (u, v) in [0, 1] (smooth, so it can be checked)."""
+    u, v = np.asarray(u, float), np.asarray(v, float)
+    return np.stack([128 + 100 * np.sin(2 * np.pi * 6 * u), 128 + 100 * np.sin(2 * np.pi * 5 * v),
+                     128 + 60 * np.cos(2 * np.pi * 3 * (u + v))], axis=-1)
+
+
+def scene_texture(tex: int) -> np.ndarray:
+    """(tex, tex, 3) uint8; row 0 is the top of the image (v = 1), texel centres sampled."""
+    c = (np.arange(tex) + 0.5) / tex
+    U, V = np.meshgrid(c, 1.0 - c)
+    return np.clip(np.rint(texture_rgb(U, V)), 0, 255).astype(np.uint8)
+
+
+def building_color(k: int) -> int:
+    return 60 + 40 * k
+
+
+def scene_mesh(n=24, tex=512) -> Mesh:
     """The scene in the world frame: a textured terrain (planar uv) + vertex-coloured buildings."""
     x0, y0, x1, y1 = EXTENT
     xs, ys = np.meshgrid(np.linspace(x0, x1, n + 1), np.linspace(y0, y1, n + 1))
@@ -82,12 +100,11 @@ def scene_mesh(n=24, tex=512, seed=0) -> Mesh:
             a = i * (n + 1) + j
             F += [[a, a + 1, a + n + 2], [a, a + n + 2, a + n + 1]]
     uv = np.c_[(V[:, 0] - x0) / (x1 - x0), (V[:, 1] - y0) / (y1 - y0)]
-    rng = np.random.default_rng(seed)
-    texture = (rng.random((tex, tex, 3)) * 255).astype(np.uint8)
+    texture = scene_texture(tex)
     parts = [MeshPart(V, np.array(F), uv=uv, texture=texture, name="terrain")]
     for k, b in enumerate(BUILDINGS):
         bv, bf = _box(b)
-        parts.append(MeshPart(bv, bf, colors=np.full((len(bv), 3), 60 + 40 * k, np.uint8), name=f"building{k}"))
+        parts.append(MeshPart(bv, bf, colors=np.full((len(bv), 3), building_color(k), np.uint8), name=f"building{k}"))
     return Mesh(parts)
 
 

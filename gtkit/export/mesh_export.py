@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 
 STAGE = "export_mesh"
 FORMATS = ("obj", "ply", "glb")
+MIN_PART = 100  # parts with fewer triangles are not decimated
 
 
 @dataclass
@@ -93,7 +94,10 @@ def _annotate_sidecar(out: Path, fmt: str, source: str) -> None:
 def write_mesh(path: Path, mesh: Mesh, fmt: str) -> Path:
     """Write ``mesh`` (coordinates as they should appear in the file) as obj, ply or glb."""
     if fmt == "obj":
-        return write_obj(path, mesh)
+        # textured parts first: trimesh's OBJ reader (maintain_order=True, as gtkit.io.mesh uses it)
+        # drops the uv of a textured part that follows untextured ones
+        textured = [p for p in mesh.parts if p.texture is not None and p.uv is not None]
+        return write_obj(path, Mesh(textured + [p for p in mesh.parts if not any(p is q for q in textured)]))
     import trimesh
 
     if fmt == "ply":
@@ -144,16 +148,19 @@ def vertex_colors(part: MeshPart) -> np.ndarray:
 
 
 def decimate(mesh: Mesh, target_triangles: int) -> Mesh:
-    """Quadric edge-collapse decimation with pymeshlab to about ``target_triangles`` in total,
-    each part keeping its share (at least 4). Textured parts keep their texture and uv."""
+    """Quadric edge-collapse decimation with pymeshlab to about ``target_triangles`` in total.
+    Parts under ``MIN_PART`` triangles (a box, a sign) are kept whole; the others share the rest
+    of the budget by their size. Textured parts keep their texture and uv."""
     import pymeshlab
 
-    total = mesh.n_triangles
+    small = sum(len(p.faces) for p in mesh.parts if len(p.faces) < MIN_PART)
+    big = mesh.n_triangles - small
+    budget = max(target_triangles - small, 4)
     parts = []
     with tempfile.TemporaryDirectory(prefix="gtkit_decimate_") as d:
         for i, p in enumerate(mesh.parts):
-            want = max(4, int(round(target_triangles * len(p.faces) / total)))
-            if want >= len(p.faces):
+            want = max(MIN_PART // 2, int(round(budget * len(p.faces) / max(big, 1))))
+            if len(p.faces) < MIN_PART or want >= len(p.faces):
                 parts.append(p)
                 continue
             centre = p.vertices.mean(0)  # decimate near the origin: pymeshlab's OBJ text keeps 4 decimals
