@@ -1,0 +1,40 @@
+"""``gtkit register DIR``: tie-point registration of each query block + joint bundle adjustment."""
+from __future__ import annotations
+
+
+def register(sub):
+    p = sub.add_parser("register", help="register query blocks to the reference by tie points; joint BA; "
+                       "writes pseudo-GT poses")
+    p.add_argument("project")
+    p.add_argument("--sim3-max-error-m", type=float, default=None, help="Sim(3) RANSAC threshold (default 1.5 m)")
+    p.add_argument("--tie-max-px", type=float, default=None, help="click residual threshold (default 4 px)")
+    p.add_argument("--refine-query-intrinsics", action="store_true")
+    p.add_argument("--force", action="store_true")
+    p.set_defaults(func=run)
+
+
+def run(args):
+    from ..sfm.register import RegisterSettings
+    from ..sfm.register import run as run_register
+
+    s = RegisterSettings()
+    if args.sim3_max_error_m:
+        s.sim3_max_error_m = args.sim3_max_error_m
+    if args.tie_max_px:
+        s.tie_max_px = args.tie_max_px
+    s.refine_query_intrinsics = args.refine_query_intrinsics
+    r = run_register(args.project, s, force=args.force)
+    failed = 0
+    for seq, info in r["sequences"].items():
+        if info["status"] == "error":
+            failed += 1
+            print(f"{seq}: ERROR {info['error']}")
+        else:
+            print(f"{seq}: registered, {info['n_inliers']}/{info['n_tiepoints']} tie points inliers, "
+                  f"Sim(3) RMSE {info['sim3_rmse_m']:.3f} m")
+    print(f"pseudo-GT: {r['n_registered']}/{r['n_images']} query photos; median reprojection "
+          f"{r.get('median_reproj_px') or float('nan'):.2f} px, tie points {r.get('median_tiepoint_reproj_px') or float('nan'):.2f} px")
+    for tid, b in (r.get("bad_tiepoints") or {}).items():
+        print(f"  bad tie point {tid}: {b['reason']}; " + ", ".join(
+            f"{c['image']} ({c['residual_px']:.0f} px)" for c in b["dropped_clicks"]))
+    return 1 if failed else 0

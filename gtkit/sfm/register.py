@@ -1,0 +1,403 @@
+"""Register each query block to the georegistered reference block through tie points, then
+refine everything in one joint bundle adjustment with the reference block held fixed.
+
+Per sequence:
+1. triangulate every tie point from its clicks in the reference block (fixed, georegistered
+   poses) and in the query block (its SfM poses); a click that disagrees with the others by
+   more than ``tie_max_px`` is dropped (gross mistake). A tie point seen in one query photo only
+   gets its query-block position from the depth of the block's own 3D points around the click.
+2. robust Sim(3) (LO-RANSAC) from query-block to reference positions; tie points off the fit by
+   more than ``sim3_max_error_m`` are outliers. Fewer than 3 usable tie points, collinear ones,
+   or a failed fit: the sequence is an error with its reason (never a prior pose).
+3. transform the query block.
+Then one joint bundle adjustment: the reference photos that hold tie clicks keep their poses
+and intrinsics fixed; each registered query block enters with its own 3D points; each tie point
+is a 3D point observed in both blocks and so ties them together. Tie observations still off by
+more than ``ba_max_tie_px`` after a robust first pass are dropped and the BA is re-run.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ..camera import Camera
+from ..errors import GtkitError
+from ..io.atomic import write_json
+from ..io.poses import write_covariances, write_intrinsics, write_poses
+from ..io.tiepoints import TiePoint, read_tiepoints
+from ..pose import Pose
+from ..project import Project, file_fingerprint, mark_stage_done, stage_done
+from .blocks import QUERIES_STAGE, REFERENCE_STAGE
+from .geometry import (RegistrationError, model_cameras, model_poses, reprojection_px, robust_sim3, sim3_apply,
+                       triangulate_clicks)
+
+log = logging.getLogger(__name__)
+STAGE = "register"
+
+
+@dataclass
+class RegisterSettings:
+    tie_max_px: float = 4.0          # a click farther than this from its triangulated point is a mistake
+    sim3_max_error_m: float = 1.5    # Sim(3) RANSAC inlier threshold, metres in the reference frame
+    ba_max_tie_px: float = 3.0       # tie observations above this after the robust BA pass are dropped
+    ba_loss_scale_px: float = 2.0    # Cauchy loss scale of the first BA pass
+    refine_query_intrinsics: bool = False  # let the joint BA refine the query cameras' focal/distortion
+    min_tiepoints: int = 3
+    ba_max_iterations: int = 100
+    num_threads: int = 2
+
+
+@dataclass
+class TieStatus:
+    id: str
+    ref_xyz: np.ndarray | None = None
+    query_xyz: np.ndarray | None = None
+    ref_used: list[str] = field(default_factory=list)
+    query_used: list[str] = field(default_factory=list)
+    dropped_clicks: list[dict] = field(default_factory=list)
+    query_from_depth: bool = False
+    sim3_residual_m: float | None = None
+    inlier: bool = False
+    reason: str = ""
+
+    def as_dict(self) -> dict:
+        return {"id": self.id, "inlier": self.inlier, "reason": self.reason,
+                "sim3_residual_m": self.sim3_residual_m, "ref_clicks_used": self.ref_used,
+                "query_clicks_used": self.query_used, "dropped_clicks": self.dropped_clicks,
+                "query_position_from_model_depth": self.query_from_depth}
+
+
+def depth_from_model(rec: pycolmap.Reconstruction, name: str, uv: np.ndarray, k: int = 8,
+                     max_px: float = 60.0) -> np.ndarray | None:
+    """A clicked pixel of a one-click tie point lifted to 3D with the median depth of the block's
+    own 3D points observed near the click (local surface), or None when there are too few."""
+    im = rec.find_image_with_name(name)
+    if im is None or not im.has_pose:
+        return None
+    pts = [(p2.xy, rec.points3D[p2.point3D_id].xyz) for p2 in im.points2D if p2.has_point3D()]
+    if len(pts) < k:
+        return None
+    xy = np.array([p[0] for p in pts])
+    d = np.linalg.norm(xy - uv, axis=1)
+    near = np.argsort(d)[:k]
+    if d[near].max() > max_px:
+        return None
+    pose = Pose.from_pycolmap(im.cam_from_world())
+    z = pose.transform(np.array([pts[i][1] for i in near]))[:, 2]
+    cam = Camera.from_pycolmap(rec.cameras[im.camera_id])
+    ray = np.append(cam.image_to_world(uv[None])[0], 1.0) * float(np.median(z))
+    return pose.R.T @ (ray - pose.t)
+
+
+def _triangulate(tp_obs, poses, cams, max_px):
+    obs = [o for o in tp_obs if o.image in poses]
+    tri = triangulate_clicks([cams[o.image] for o in obs], [poses[o.image] for o in obs],
+                             np.array([[o.x, o.y] for o in obs]).reshape(-1, 2), max_px=max_px)
+    used = [o for o, u in zip(obs, tri.used) if u]
+    dropped = [{"image": o.image, "x": o.x, "y": o.y, "residual_px": float(r)}
+               for o, u, r in zip(obs, tri.used, tri.residuals_px) if not u]
+    return tri, obs, used, dropped
+
+
+def register_sequence(seq: str, qrec: pycolmap.Reconstruction, ref_poses, ref_cams, tiepoints: list[TiePoint],
+                      settings: RegisterSettings) -> tuple[pycolmap.Sim3d, list[TieStatus]]:
+    """Sim(3) of one query block into the reference frame; raises RegistrationError with the reason."""
+    qposes, qcams = model_poses(qrec), model_cameras(qrec)
+    prefix = f"queries/{seq}/"
+    status = []
+    for tp in tiepoints:
+        qobs_all = tp.in_block(prefix)
+        if not qobs_all:
+            continue
+        st = TieStatus(tp.id)
+        status.append(st)
+        rtri, robs, rused, rdrop = _triangulate(tp.in_block("reference/"), ref_poses, ref_cams, settings.tie_max_px)
+        st.dropped_clicks += rdrop
+        if rtri.xyz is None:
+            st.reason = f"reference: {rtri.reason} ({len(robs)} clicks in registered reference photos)"
+            continue
+        st.ref_xyz, st.ref_used = rtri.xyz, [o.image for o in rused]
+        qobs = [o for o in qobs_all if o.image in qposes]
+        if len(qobs) == 1:
+            X = depth_from_model(qrec, qobs[0].image, np.array([qobs[0].x, qobs[0].y]))
+            if X is None:
+                st.reason = "query: one click only and too few block points near it"
+                continue
+            st.query_xyz, st.query_used, st.query_from_depth = X, [qobs[0].image], True
+            continue
+        qtri, _, qused, qdrop = _triangulate(qobs_all, qposes, qcams, settings.tie_max_px)
+        st.dropped_clicks += qdrop
+        if qtri.xyz is None:
+            st.reason = f"query: {qtri.reason or 'no clicks in registered query photos'} ({len(qobs)} clicks in registered photos)"
+            continue
+        st.query_xyz, st.query_used = qtri.xyz, [o.image for o in qused]
+    usable = [s for s in status if s.ref_xyz is not None and s.query_xyz is not None]
+    if len(usable) < settings.min_tiepoints:
+        raise RegistrationError(f"only {len(usable)} usable tie points ({len(status)} clicked in this sequence; "
+                                f"{settings.min_tiepoints} or more non-collinear ones needed)")
+    fit = robust_sim3(np.array([s.query_xyz for s in usable]), np.array([s.ref_xyz for s in usable]),
+                      settings.sim3_max_error_m, what="tie points")
+    for s, r, ok in zip(usable, fit.residuals_m, fit.inliers):
+        s.sim3_residual_m, s.inlier = float(r), bool(ok)
+        if not ok:
+            s.reason = f"Sim(3) outlier ({r:.2f} m from the fit)"
+    return fit.tgt_from_src, status
+
+
+# --- the joint model -----------------------------------------------------------------------
+
+class _Builder:
+    """Assembles one pycolmap Reconstruction from several blocks with fresh ids."""
+
+    def __init__(self):
+        self.rec = pycolmap.Reconstruction()
+        self.next_cam = 1
+        self.next_img = 1
+        self.image_ids: dict[str, int] = {}
+        self.extra: dict[str, list] = {}   # name -> [(xy, key)] clicks appended after block keypoints
+
+    def add_camera(self, cam: pycolmap.Camera) -> int:
+        c = pycolmap.Camera(model=cam.model, width=cam.width, height=cam.height, params=list(cam.params),
+                            camera_id=self.next_cam)
+        self.rec.add_camera_with_trivial_rig(c)
+        self.next_cam += 1
+        return c.camera_id
+
+    def add_image(self, name: str, cam_id: int, pose: pycolmap.Rigid3d, keypoints: np.ndarray) -> int:
+        iid = self.next_img
+        self.next_img += 1
+        im = pycolmap.Image(name=name, keypoints=np.asarray(keypoints, float).reshape(-1, 2), camera_id=cam_id,
+                            image_id=iid)
+        self.rec.add_image_with_trivial_frame(im, pose)
+        self.image_ids[name] = iid
+        return iid
+
+
+def build_joint(ref_rec, ref_names_needed: set[str], blocks: dict[str, pycolmap.Reconstruction],
+                ties: dict[str, dict[str, tuple[float, float]]], tie_xyz: dict[str, np.ndarray]):
+    """``ties``: tie id -> {image: (x, y)} of the observations to use. Returns (builder, ref_ids,
+    tie point3D ids {tie id: point3D_id}, tie observations {tie id: [(image_id, idx)]})."""
+    b = _Builder()
+    clicks_per_image: dict[str, list] = {}
+    for tid, obs in ties.items():
+        for name, xy in obs.items():
+            clicks_per_image.setdefault(name, []).append((tid, xy))
+    ref_ids = set()
+    cam_map = {}
+    for name in sorted(ref_names_needed):
+        im = ref_rec.find_image_with_name(name)
+        if im.camera_id not in cam_map:
+            cam_map[im.camera_id] = b.add_camera(ref_rec.cameras[im.camera_id])
+        kp = np.array([xy for _, xy in clicks_per_image.get(name, [])]).reshape(-1, 2)
+        ref_ids.add(b.add_image(name, cam_map[im.camera_id], im.cam_from_world(), kp))
+    tie_slot: dict[tuple[str, str], int] = {}
+    for name in ref_names_needed:
+        for k, (tid, _) in enumerate(clicks_per_image.get(name, [])):
+            tie_slot[(name, tid)] = k
+    for seq, rec in blocks.items():
+        cam_map, id_map = {}, {}
+        for iid, im in rec.images.items():
+            if not im.has_pose:
+                continue
+            if im.camera_id not in cam_map:
+                cam_map[im.camera_id] = b.add_camera(rec.cameras[im.camera_id])
+            kp = np.array([p.xy for p in im.points2D]).reshape(-1, 2)
+            n0 = len(kp)
+            extra = clicks_per_image.get(im.name, [])
+            if extra:
+                kp = np.vstack([kp, np.array([xy for _, xy in extra])])
+            for k, (tid, _) in enumerate(extra):
+                tie_slot[(im.name, tid)] = n0 + k
+            id_map[iid] = b.add_image(im.name, cam_map[im.camera_id], im.cam_from_world(), kp)
+        for p in rec.points3D.values():
+            els = [pycolmap.TrackElement(id_map[e.image_id], e.point2D_idx) for e in p.track.elements
+                   if e.image_id in id_map]
+            if len(els) >= 2:
+                b.rec.add_point3D(p.xyz, pycolmap.Track(els), p.color)
+    tie_pids, tie_obs = {}, {}
+    for tid, obs in ties.items():
+        els = [(b.image_ids[n], tie_slot[(n, tid)]) for n in obs if n in b.image_ids]
+        tie_obs[tid] = els
+        tie_pids[tid] = b.rec.add_point3D(tie_xyz[tid], pycolmap.Track([pycolmap.TrackElement(i, k) for i, k in els]))
+    return b, ref_ids, tie_pids, tie_obs
+
+
+def _bundle_adjust(rec, ref_ids, settings: RegisterSettings, loss: str, covariance: bool = False):
+    cfg = pycolmap.BundleAdjustmentConfig()
+    ref_cams = {rec.images[i].camera_id for i in ref_ids}
+    for iid in rec.reg_image_ids():
+        cfg.add_image(iid)
+    for iid in ref_ids:
+        cfg.set_constant_rig_from_world_pose(rec.images[iid].frame_id)
+    for cid in rec.cameras:
+        if cid in ref_cams or not settings.refine_query_intrinsics:
+            cfg.set_constant_cam_intrinsics(cid)
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.print_summary = False
+    opts.refine_principal_point = False
+    opts.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss)
+    opts.ceres.loss_function_scale = settings.ba_loss_scale_px
+    opts.ceres.solver_options.max_num_iterations = settings.ba_max_iterations
+    opts.ceres.solver_options.num_threads = settings.num_threads
+    ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
+    summary = ba.solve()
+    cov = None
+    if covariance:
+        try:
+            cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, ba)
+        except Exception as e:  # noqa: BLE001 - covariance is optional output; the reason is logged
+            log.warning("BA covariance failed: %s", e)
+    return summary, cov
+
+
+def point_reprojection_errors(rec, point_ids) -> np.ndarray:
+    errs = []
+    for pid in point_ids:
+        p = rec.points3D[pid]
+        for e in p.track.elements:
+            im = rec.images[e.image_id]
+            proj = im.project_point(p.xyz)
+            errs.append(np.inf if proj is None else float(np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy)))
+    return np.asarray(errs)
+
+
+# --- the stage ---------------------------------------------------------------------------------
+
+def run(project: Project | str | Path, settings: RegisterSettings | None = None, force: bool = False) -> dict:
+    """``gtkit register DIR``: pseudo-GT poses of every registered query photo."""
+    project = project if isinstance(project, Project) else Project.load(project)
+    settings = settings or RegisterSettings()
+    P = project.paths
+    out = P.stage(STAGE)
+    ref_dir = P.stage(REFERENCE_STAGE) / "model"
+    if not ref_dir.is_dir():
+        raise GtkitError("reference block missing: run `gtkit sfm DIR --block reference` first", ref_dir)
+    seq_dirs = {s: P.stage(QUERIES_STAGE) / s / "model" for s in P.query_sequences()}
+    inputs = {"tiepoints": file_fingerprint(P.tiepoints),
+              "reference": file_fingerprint(ref_dir / "images.bin"),
+              "queries": {s: file_fingerprint(d / "images.bin") for s, d in seq_dirs.items()}}
+    if not force and stage_done(out, settings, inputs):
+        import json
+        return json.loads((out / "registration.json").read_text())
+    t0 = time.time()
+    tiepoints = read_tiepoints(P.tiepoints)
+    ref_rec = pycolmap.Reconstruction(ref_dir)
+    ref_poses, ref_cams = model_poses(ref_rec), model_cameras(ref_rec)
+    seq_report, blocks, statuses = {}, {}, {}
+    for seq, d in seq_dirs.items():
+        if not d.is_dir():
+            seq_report[seq] = {"status": "error", "error": "no query-block model (run `gtkit sfm DIR --block queries`)"}
+            continue
+        qrec = pycolmap.Reconstruction(d)
+        try:
+            sim, st = register_sequence(seq, qrec, ref_poses, ref_cams, tiepoints, settings)
+        except RegistrationError as e:
+            seq_report[seq] = {"status": "error", "error": str(e)}
+            log.error("sequence %s not registered: %s", seq, e)
+            continue
+        qrec.transform(sim)
+        blocks[seq], statuses[seq] = qrec, st
+        seq_report[seq] = {"status": "registered", "scale": float(sim.scale),
+                           "n_tiepoints": len(st), "n_inliers": sum(s.inlier for s in st),
+                           "sim3_rmse_m": float(np.sqrt(np.mean([s.sim3_residual_m ** 2 for s in st if s.inlier])))}
+    t_sim = time.time()
+    # one 3D point per tie point with every observation kept by the per-sequence steps
+    ties: dict[str, dict[str, tuple]] = {}
+    tie_xyz = {}
+    obs_xy = {(tp.id, o.image): (o.x, o.y) for tp in tiepoints for o in tp.observations}
+    for seq, st in statuses.items():
+        for s in st:
+            if not s.inlier:
+                continue
+            d = ties.setdefault(s.id, {})
+            for n in s.ref_used + s.query_used:
+                d[n] = obs_xy[(s.id, n)]
+            tie_xyz[s.id] = s.ref_xyz
+    result = {"sequences": seq_report, "n_registered": 0, "n_images": 0, "images": {}}
+    if blocks:
+        ref_needed = {n for d in ties.values() for n in d if n.startswith("reference/")}
+        b, ref_ids, tie_pids, tie_obs = build_joint(ref_rec, ref_needed, blocks, ties, tie_xyz)
+        rec = b.rec
+        _bundle_adjust(rec, ref_ids, settings, "CAUCHY")
+        # drop tie observations that still disagree (click mistakes the triangulation could not see)
+        rejected = []
+        for tid, pid in tie_pids.items():
+            p = rec.points3D[pid]
+            for e in list(p.track.elements):
+                im = rec.images[e.image_id]
+                proj = im.project_point(p.xyz)
+                r = np.inf if proj is None else np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy)
+                if r > settings.ba_max_tie_px:
+                    rejected.append({"tie": tid, "image": im.name, "residual_px": float(r)})
+        for rj in rejected:
+            pid = tie_pids[rj["tie"]]
+            iid = b.image_ids[rj["image"]]
+            if pid in rec.points3D and rec.points3D[pid].track.length() > 2:
+                idx = next(e.point2D_idx for e in rec.points3D[pid].track.elements if e.image_id == iid)
+                rec.delete_observation(iid, idx)
+        summary, cov = _bundle_adjust(rec, ref_ids, settings, "TRIVIAL", covariance=True)
+        t_ba = time.time()
+        qids = [i for i in rec.reg_image_ids() if i not in ref_ids]
+        tie_set = set(tie_pids.values())
+        sfm_pids = [p for p in rec.points3D if p not in tie_set]
+        sfm_err = point_reprojection_errors(rec, sfm_pids)
+        tie_err = point_reprojection_errors(rec, [p for p in tie_pids.values() if p in rec.points3D])
+        poses, cams, covs = {}, {}, {}
+        per_image = {}
+        for iid in qids:
+            im = rec.images[iid]
+            c = None
+            if cov is not None:
+                try:
+                    c = np.asarray(cov.get_cam_cov_from_world(iid))
+                except Exception:  # noqa: BLE001 - not every image gets one
+                    c = None
+            pose = Pose.from_pycolmap(im.cam_from_world())
+            poses[im.name] = pose
+            cams[im.name] = Camera.from_pycolmap(rec.cameras[im.camera_id])
+            info = {"sequence": im.name.split("/")[1], "n_points": int(im.num_points3D)}
+            if c is not None and c.shape == (6, 6) and np.all(np.isfinite(c)):
+                covs[im.name] = c
+                Cc = pose.R.T @ c[3:, 3:] @ pose.R
+                info["sigma_pos_m"] = float(np.sqrt(np.trace(Cc)))
+                info["sigma_rot_deg"] = float(np.degrees(np.sqrt(np.trace(c[:3, :3]))))
+            per_image[im.name] = info
+        n_all = sum(len(list((P.query_images / s).glob("*_W.*"))) for s in seq_dirs)
+        bad = {}
+        for seq, st in statuses.items():
+            for s in st:
+                if not s.inlier or s.dropped_clicks:
+                    bad[s.id] = {"sequence": seq, "reason": s.reason or "some clicks dropped as mistakes",
+                                 "dropped_clicks": s.dropped_clicks}
+        for rj in rejected:
+            bad.setdefault(rj["tie"], {"reason": "observation rejected by the joint BA", "dropped_clicks": []})
+            bad[rj["tie"]]["dropped_clicks"].append({"image": rj["image"], "residual_px": rj["residual_px"]})
+        result.update({
+            "n_registered": len(poses), "n_images": n_all, "images": per_image,
+            "median_reproj_px": float(np.median(sfm_err)) if len(sfm_err) else None,
+            "mean_reproj_px": float(np.mean(sfm_err)) if len(sfm_err) else None,
+            "median_tiepoint_reproj_px": float(np.median(tie_err)) if len(tie_err) else None,
+            "n_tiepoints_in_ba": len(tie_pids), "ba_rejected_observations": rejected,
+            "bad_tiepoints": bad,
+            "tiepoints": {seq: [s.as_dict() for s in st] for seq, st in statuses.items()},
+            "seconds": {"sim3": t_sim - t0, "joint_ba": t_ba - t_sim}})
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "model").mkdir(exist_ok=True)
+        rec.write(out / "model")
+        write_poses(out / "poses.txt", poses, header="pseudo-GT poses of the query photos (gtkit register)")
+        write_intrinsics(out / "intrinsics.txt", cams)
+        if covs:
+            write_covariances(out / "covariances.txt", covs)
+    else:
+        n_all = sum(len(list((P.query_images / s).glob("*_W.*"))) for s in seq_dirs)
+        result["n_images"] = n_all
+        for f in ("poses.txt", "intrinsics.txt", "covariances.txt"):
+            (out / f).unlink(missing_ok=True)
+    write_json(out / "registration.json", result)
+    mark_stage_done(out, settings, inputs, n_registered=result["n_registered"])
+    return result

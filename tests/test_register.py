@@ -1,0 +1,180 @@
+"""Tie-point registration + joint BA on a synthetic scene built by hand (pycolmap models with
+known cameras), measured against the true poses. Runs in seconds: no images, no SIFT."""
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+import pytest
+
+from gtkit.camera import Camera
+from gtkit.conventions import dji_to_rotation
+from gtkit.evaluate.poses import medians, pose_errors
+from gtkit.geo import GeoFrame
+from gtkit.io.poses import read_covariances, read_poses
+from gtkit.io.tiepoints import Observation, TiePoint, write_tiepoints
+from gtkit.pose import Pose
+from gtkit.project import Project
+from gtkit.sfm import register
+from gtkit.sfm.geometry import RegistrationError, robust_sim3, triangulate_clicks
+
+CLICK_NOISE = 0.5
+REF_CAM = Camera.pinhole(1600, 1200, 1400.0)
+Q_CAM = Camera("SIMPLE_RADIAL", 1600, 1200, (920.0, 800.0, 600.0, -0.02))
+
+
+def _ground(rng, n, half=60.0):
+    xy = rng.uniform(-half, half, (n, 2))
+    return np.c_[xy, 3.0 * np.sin(xy[:, 0] / 15.0) + rng.uniform(0, 8, n)]
+
+
+def _visible(cam, pose, X, margin=5):
+    uv, front = cam.project(pose.transform(X))
+    return uv, front & cam.in_image(uv, margin)
+
+
+def _model(cam: Camera, poses: dict[str, Pose], points=None, rng=None, noise_px=0.0):
+    """A pycolmap Reconstruction holding ``poses`` (and ``points`` observed where visible)."""
+    rec = pycolmap.Reconstruction()
+    c = cam.to_pycolmap()
+    c.camera_id = 1
+    rec.add_camera_with_trivial_rig(c)
+    kps = {n: [] for n in poses}
+    tracks = []
+    for X in (points if points is not None else []):
+        tr = []
+        for k, (n, p) in enumerate(poses.items()):
+            uv, ok = _visible(cam, p, X[None])
+            if ok[0]:
+                tr.append((k + 1, len(kps[n])))
+                kps[n].append(uv[0] + rng.normal(0, noise_px, 2))
+        tracks.append(tr)
+    for k, (n, p) in enumerate(poses.items()):
+        im = pycolmap.Image(name=n, keypoints=np.array(kps[n]).reshape(-1, 2), camera_id=1, image_id=k + 1)
+        rec.add_image_with_trivial_frame(im, p.to_pycolmap())
+    for X, tr in zip(points if points is not None else [], tracks):
+        if len(tr) >= 2:
+            rec.add_point3D(X, pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in tr]))
+    return rec
+
+
+def make_site(tmp_path, seed=0, mistakes=0.0, n_ties=20, seqs=("seq1",), tie_override=None):
+    """A project with a reference model, query models in arbitrary frames, clicks and truth."""
+    rng = np.random.default_rng(seed)
+    proj = Project.create(tmp_path, GeoFrame("EPSG:32650", (500000.0, 4000000.0, 0.0)))
+    P = proj.paths
+    ref = {}
+    for i, x in enumerate(np.linspace(-50, 50, 4)):
+        for j, y in enumerate(np.linspace(-50, 50, 4)):
+            for eye, (yaw, pitch) in {"N": (0, -90), "F": (0, -45), "B": (180, -45)}.items():
+                ref[f"reference/R{i}_{j}_{eye}.jpg"] = Pose.from_dji(yaw, pitch, 0.0, [x, y - 40 * np.sign(pitch + 60) * 0, 120.0]
+                                                                   if eye == "N" else [x, y - (1 if yaw == 0 else -1) * 60, 120.0])
+    _model(REF_CAM, ref).write(_mk(P.stage("sfm_reference") / "model"))
+    truth, tie_list = {}, []
+    clicks_bad = set()
+    for s, seq in enumerate(seqs):
+        qposes = {}
+        for k in range(8):
+            C = np.array([-35 + 10 * k, -70 + 5 * s, 80.0 + 3 * k])
+            qposes[f"queries/{seq}/{k:04d}_W.jpg"] = Pose.from_center(dji_to_rotation(5 * s, -50 + k, 0.0), C)
+        truth.update(qposes)
+        pts = _ground(rng, 600)
+        # the query block's own frame: a similarity away from the world, plus small SfM noise
+        Rm = pycolmap.Rotation3d(rng.normal(size=3) * 0.8).matrix()
+        scale, tr = 0.07, rng.normal(size=3) * 20
+        to_block = lambda X: scale * X @ Rm.T + tr  # noqa: E731
+        bposes = {}
+        for n, p in qposes.items():
+            Cb = to_block(p.center[None])[0] + rng.normal(0, 0.02 * scale, 3)
+            bposes[n] = Pose.from_center(p.R @ Rm.T, Cb)
+        qm = _model(Q_CAM, qposes, pts, rng, noise_px=0.5)
+        # move the model (built in world) into the block frame
+        qm.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(Rm), tr))
+        (P.query_images / seq).mkdir(parents=True, exist_ok=True)
+        for n in qposes:
+            (P.images / n).write_bytes(b"")
+        qm.write(_mk(P.stage("sfm_queries") / seq / "model"))
+        tx = _ground(rng, 400, half=50.0) if tie_override is None else tie_override
+        for X in tx:
+            qo = [(n, uv) for n, p in qposes.items() for uv, ok in [_visible(Q_CAM, p, X[None], 40)] if ok[0]]
+            ro = [(n, uv) for n, p in ref.items() for uv, ok in [_visible(REF_CAM, p, X[None], 40)] if ok[0]]
+            if len(qo) < 2 or len(ro) < 2:
+                continue
+            qo, ro = qo[:3], ro[:3]
+            tid = f"{seq}_tp{len([t for t in tie_list if t.id.startswith(seq)]):02d}"
+            obs = [Observation(n, *(uv[0] + rng.normal(0, CLICK_NOISE, 2))) for n, uv in qo + ro]
+            if rng.uniform() < mistakes:  # a gross click mistake in one photo
+                o = obs[rng.integers(len(obs))]
+                o.x += rng.choice([-1, 1]) * rng.uniform(40, 120)
+                o.y += rng.choice([-1, 1]) * rng.uniform(40, 120)
+                clicks_bad.add(tid)
+            tie_list.append(TiePoint(tid, obs, "simulated"))
+            if len([t for t in tie_list if t.id.startswith(seq)]) >= n_ties:
+                break
+    write_tiepoints(P.tiepoints, tie_list)
+    return proj, truth, clicks_bad
+
+
+def _mk(d):
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def test_registration_meets_targets(tmp_path):
+    proj, truth, _ = make_site(tmp_path, seed=1)
+    res = register.run(proj)
+    assert res["n_registered"] == len(truth) == res["n_images"]
+    est = read_poses(proj.paths.stage("register") / "poses.txt")
+    m = medians(pose_errors(est, truth))
+    assert m["median_pos_err_m"] < 0.15 and m["median_rot_err_deg"] < 0.1, m
+    assert res["median_reproj_px"] < 1.0 and res["median_tiepoint_reproj_px"] < 1.5, res
+    cov = read_covariances(proj.paths.stage("register") / "covariances.txt")
+    assert set(cov) == set(truth)
+    s = [res["images"][n]["sigma_pos_m"] for n in truth]
+    assert 0 < np.median(s) < 0.5
+
+
+def test_gross_click_mistakes_are_listed(tmp_path):
+    proj, truth, bad = make_site(tmp_path, seed=2, mistakes=0.2, n_ties=20)
+    assert len(bad) >= 2
+    res = register.run(proj)
+    est = read_poses(proj.paths.stage("register") / "poses.txt")
+    m = medians(pose_errors(est, truth))
+    assert m["median_pos_err_m"] < 0.15 and m["median_rot_err_deg"] < 0.1, m
+    assert bad <= set(res["bad_tiepoints"]), (bad, res["bad_tiepoints"].keys())
+    assert res["median_tiepoint_reproj_px"] < 1.5
+
+
+def test_too_few_and_collinear_tiepoints_fail_per_sequence(tmp_path):
+    proj, truth, _ = make_site(tmp_path, seed=3, seqs=("seq1", "seq2"), n_ties=10)
+    # seq2 keeps only two tie points: an error for seq2, seq1 still finishes
+    from gtkit.io.tiepoints import read_tiepoints
+    tps = read_tiepoints(proj.paths.tiepoints)
+    seq2 = [t for t in tps if t.id.startswith("seq2")]
+    write_tiepoints(proj.paths.tiepoints, [t for t in tps if t.id.startswith("seq1")] + seq2[:2])
+    res = register.run(proj)
+    assert res["sequences"]["seq2"]["status"] == "error"
+    assert "only 2 usable tie points" in res["sequences"]["seq2"]["error"]
+    assert res["sequences"]["seq1"]["status"] == "registered"
+    est = read_poses(proj.paths.stage("register") / "poses.txt")
+    assert all(n.startswith("queries/seq1/") for n in est) and len(est) == 8
+    assert res["n_images"] == 16 and res["n_registered"] == 8
+
+
+def test_collinear_sim3_is_an_error():
+    rng = np.random.default_rng(0)
+    src = np.c_[np.linspace(0, 10, 6), 2 * np.linspace(0, 10, 6), np.zeros(6)]
+    with pytest.raises(RegistrationError, match="collinear"):
+        robust_sim3(src, src * 2 + 1, 0.5)
+    with pytest.raises(RegistrationError, match="only 2"):
+        robust_sim3(rng.normal(size=(2, 3)), rng.normal(size=(2, 3)), 0.5)
+
+
+def test_triangulation_drops_a_bad_click():
+    rng = np.random.default_rng(4)
+    X = np.array([3.0, -2.0, 5.0])
+    poses = [Pose.from_dji(0, -90, 0, [x, 0, 100]) for x in (-20, 0, 20, 35)]
+    uv = np.array([REF_CAM.project(p.transform(X[None]))[0][0] for p in poses]) + rng.normal(0, 0.5, (4, 2))
+    uv[2] += [60, -45]
+    tri = triangulate_clicks([REF_CAM] * 4, poses, uv, max_px=3.0)
+    assert tri.used.tolist() == [True, True, False, True]
+    assert np.linalg.norm(tri.xyz - X) < 0.3
