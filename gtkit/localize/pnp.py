@@ -131,6 +131,9 @@ def gravity_pnp_ransac(uv: np.ndarray, X: np.ndarray, camera: Camera, gravity_pr
         res.gravity_err_deg = angle_between_deg(gravity_in_camera(R), g)
     if res.n_inliers < s.min_inliers:
         res.reason = f"too few inliers ({res.n_inliers} < {s.min_inliers}) of {n} matches"
+        if use_g:
+            res.reason += (f"; {res.n_rejected_gravity} of {res.n_hypotheses} hypotheses disagreed with the "
+                           f"IMU gravity by more than {s.gravity_deg:g} deg")
         return res
     if use_g and res.gravity_err_deg > s.gravity_deg:
         res.reason = (f"refined pose disagrees with the IMU gravity by {res.gravity_err_deg:.2f} deg "

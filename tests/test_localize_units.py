@@ -1,0 +1,127 @@
+"""Unit tests of the localization parts on synthetic data with known answers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gtkit.camera import Camera
+from gtkit.conventions import angle_between_deg, dji_to_rotation, gravity_in_camera, index_to_pixel
+from gtkit.localize.grid import grid_positions, make_views
+from gtkit.localize.lift import lift, sample_depth
+from gtkit.localize.pnp import PnPSettings, gravity_pnp_ransac
+from gtkit.localize.prior import gps_filter, rotation_filter
+from gtkit.pose import Pose
+
+CAM = Camera.pinhole(800, 600, 700.0)
+
+
+def _project(pose, X):
+    uv, front = CAM.project(pose.transform(X))
+    return uv, front
+
+
+def _scene(rng, n):
+    return np.c_[rng.uniform(-80, 80, n), rng.uniform(-60, 60, n), rng.uniform(0, 15, n)]
+
+
+def test_p3p_ransac_recovers_pose_with_outliers_and_gravity():
+    rng = np.random.default_rng(0)
+    truth = Pose.from_dji(30.0, -60.0, 2.0, [10.0, -90.0, 120.0])
+    X = _scene(rng, 400)
+    uv, front = _project(truth, X)
+    keep = front & CAM.in_image(uv)
+    X, uv = X[keep], uv[keep] + rng.normal(0, 0.5, (keep.sum(), 2))
+    out = rng.random(len(uv)) < 0.5
+    uv[out] = rng.uniform([0, 0], [800, 600], (out.sum(), 2))
+    g = gravity_in_camera(dji_to_rotation(33.0, -60.3, 2.2))  # IMU prior: yaw is irrelevant to gravity
+    r = gravity_pnp_ransac(uv, X, CAM, g, PnPSettings())
+    assert r.ok, r.reason
+    dp, dr = r.pose.error_to(truth)
+    assert dp < 0.3 and dr < 0.1
+    assert r.n_rejected_gravity > 0 and r.gravity_err_deg < 2.0
+    assert abs(r.n_inliers - (~out).sum()) < 0.05 * len(uv)
+
+
+def test_gravity_check_beats_a_wrong_but_popular_hypothesis():
+    """55% of the matches support a pose whose gravity is 8 deg off the IMU; 45% the true one."""
+    rng = np.random.default_rng(1)
+    truth = Pose.from_dji(0.0, -70.0, 0.0, [0.0, -40.0, 110.0])
+    wrong = Pose.from_dji(5.0, -62.0, 0.0, [3.0, -60.0, 105.0])
+    Xa, Xb = _scene(rng, 200), _scene(rng, 250)
+    ua, fa = _project(truth, Xa)
+    ub, fb = _project(wrong, Xb)
+    X = np.r_[Xa[fa], Xb[fb]]
+    uv = np.r_[ua[fa], ub[fb]] + rng.normal(0, 0.3, (fa.sum() + fb.sum(), 2))
+    g = gravity_in_camera(truth.R)
+    plain = gravity_pnp_ransac(uv, X, CAM, g, PnPSettings(gravity_deg=None))
+    guided = gravity_pnp_ransac(uv, X, CAM, g, PnPSettings())
+    assert plain.ok and plain.pose.error_to(wrong)[0] < 0.5          # the majority wins without gravity
+    assert guided.ok and guided.pose.error_to(truth)[0] < 0.3        # gravity picks the true pose
+    assert guided.pose.error_to(truth)[1] < 0.1
+
+
+def test_prior_60_deg_off_is_a_failure_with_reason():
+    rng = np.random.default_rng(2)
+    truth = Pose.from_dji(0.0, -80.0, 0.0, [0.0, 0.0, 120.0])
+    X = _scene(rng, 200)
+    uv, f = _project(truth, X)
+    g = gravity_in_camera(dji_to_rotation(0.0, -20.0, 0.0))
+    r = gravity_pnp_ransac(uv[f], X[f], CAM, g, PnPSettings())
+    assert not r.ok and r.pose is None
+    assert "gravity" in r.reason and r.n_rejected_gravity > 0.99 * r.n_hypotheses
+
+
+def test_too_few_matches_is_a_failure():
+    r = gravity_pnp_ransac(np.zeros((5, 2)), np.zeros((5, 3)), CAM, None, PnPSettings())
+    assert not r.ok and "too few" in r.reason
+
+
+def test_lifting_bilinear_exact_on_a_plane_and_rejects_edges_and_background():
+    cam = Camera.pinhole(64, 48, 50.0)
+    pose = Pose.from_dji(0.0, -90.0, 0.0, [0.0, 0.0, 100.0])  # nadir over a plane z = 0
+    depth = np.full((48, 64), 100.0, np.float32)
+    depth[:, 40:] = 80.0       # a 20 m step (a roof) from column 40 on
+    depth[:5, :5] = np.nan     # background in the top-left corner
+    uv = np.array([[10.3, 20.7], [0.5, 30.5], [5.2, 5.2], [39.9, 20.0], [50.0, 30.0], [4.6, 3.0]])
+    X, ok = lift(uv, depth, cam, pose)
+    assert ok.tolist() == [True, True, False, False, True, False]
+    # the lifted points of valid pixels are exact: they reproject onto themselves at the right depth
+    back, _ = cam.project(pose.transform(X[ok]))
+    assert np.abs(back - uv[ok]).max() < 1e-9
+    assert np.allclose(X[[0, 1], 2], 0.0) and np.isclose(X[4, 2], 20.0)
+    # pixel convention: the centre of array element (0, 0) is pixel (0.5, 0.5)
+    d, ok2 = sample_depth(np.arange(12, dtype=np.float32).reshape(3, 4) + 1000, index_to_pixel(np.array([[1.0, 1.0], [1.5, 1.0]])))
+    assert ok2.all() and np.allclose(d, [1005.0, 1005.5])
+
+
+def test_rotation_prior_filter_wraps_angles():
+    views = np.array([[179.0, -45.0, 0.0], [-179.0, -45.0, 0.0], [120.0, -45.0, 0.0],
+                      [179.0, -90.0, 0.0], [-146.0, -45.0, 0.0]])
+    m = rotation_filter([-178.0, -40.0, 0.0], views, 30.0)
+    assert m.tolist() == [True, True, False, False, False]
+    assert gps_filter([0, 0], np.array([[10.0, 0, 0], [0, 60.0, 0]]), 50.0).tolist() == [True, False]
+
+
+def test_grid_views_and_dji_mapping():
+    views = make_views((0.0, 0.0, 100.0, 100.0), 5.0, (100.0, 150.0), (50.0, 75.0), (0.0, 45.0), 45.0)
+    assert len(grid_positions(0, 0, 100, 100, 50)) == 9 and len(grid_positions(0, 0, 100, 100, 75)) == 4
+    assert len(views) == (9 + 4) * 16 and len({v.name for v in views}) == len(views)
+    down = np.array([0.0, 0.0, -1.0])
+    for v in views[:16]:
+        assert v.center[2] == 105.0
+        axis = v.pose().R[2]  # optical axis in world coordinates
+        assert angle_between_deg(axis, down) == pytest.approx(v.paper_pitch, abs=1e-6)
+    oblique = [v for v in views if v.paper_pitch == 45.0 and v.yaw == 90.0][0]
+    assert oblique.pitch == -45.0 and oblique.pose().R[2][0] > 0.7   # yaw 90 looks east
+
+
+def test_vlad_ranks_the_same_place_first():
+    from gtkit.localize.descriptors import Vlad
+
+    rng = np.random.default_rng(3)
+    places = [rng.integers(0, 60, (300, 128)).astype(np.uint8) for _ in range(5)]
+    vlad = Vlad.train(np.concatenate(places), k=16)
+    G = np.stack([vlad.describe(p) for p in places])
+    for i, p in enumerate(places):
+        q = vlad.describe(p[rng.choice(300, 200, replace=False)])  # a partial view of place i
+        assert int(np.argmax(G @ q)) == i
