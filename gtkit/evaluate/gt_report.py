@@ -1,0 +1,80 @@
+"""Evaluation of the pseudo-GT against what the estimating stages never see: the sample's
+``truth/`` poses, and an independent point cloud (e.g. a LAS/LAZ from other software)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GtkitError
+from ..geo import GeoFrame
+from ..io.poses import read_poses
+from ..pose import Pose
+from .poses import medians, pose_errors, recall
+
+
+def truth_errors(estimated: dict[str, Pose], truth_poses: Path, names: list[str]) -> dict:
+    """Per-image errors of ``estimated`` for ``names`` (missing ones flagged) + medians + recall."""
+    truth = read_poses(truth_poses)
+    names = [n for n in names if n in truth]
+    errs = pose_errors(estimated, truth, names)
+    return {"per_image": errs, **medians(errs), **recall(errs, ((0.05, 0.05), (0.1, 0.1), (0.5, 0.5), (1.0, 1.0)))}
+
+
+def read_point_cloud(path: Path, frame: GeoFrame, crs: str | None = None) -> np.ndarray:
+    """A LAS/LAZ cloud in the project's local frame; ``crs`` defaults to the file's own CRS, else
+    the project's."""
+    import laspy
+
+    path = Path(path)
+    if not path.is_file():
+        raise GtkitError("point cloud not found", path)
+    las = laspy.read(path)
+    xyz = np.c_[np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]
+    if crs is None:
+        try:
+            c = las.header.parse_crs()
+            crs = c.to_string() if c is not None else None
+        except Exception:  # noqa: BLE001 - LAS files often carry no readable CRS
+            crs = None
+    if crs is None:
+        return frame.crs_to_local(xyz)
+    return frame.from_crs(crs, xyz)
+
+
+def cloud_offsets(points: np.ndarray, cloud: np.ndarray, k: int = 8, iterations: int = 15) -> dict:
+    """Offsets of ``points`` (gtkit's, local frame) from an independent ``cloud`` (local frame).
+
+    vertical: median over points of (z - median z of the cloud's k nearest neighbours in plan).
+    horizontal: point-to-point ICP restricted to a translation: the vertical offset is removed
+    first, then repeatedly the median of the 3D nearest-neighbour offsets (x, y) is applied;
+    the accumulated (dx, dy) is the horizontal offset of gtkit's points from the cloud.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, float)
+    inside = ((pts[:, 0] >= cloud[:, 0].min()) & (pts[:, 0] <= cloud[:, 0].max())
+              & (pts[:, 1] >= cloud[:, 1].min()) & (pts[:, 1] <= cloud[:, 1].max()))
+    pts = pts[inside]
+    if len(pts) < 10:
+        raise GtkitError(f"only {len(pts)} of gtkit's points lie over the point cloud's extent")
+    t2 = cKDTree(cloud[:, :2])
+    _, i2 = t2.query(pts[:, :2], k=k)
+    dz = pts[:, 2] - np.median(cloud[i2, 2], axis=1)
+    vert = float(np.median(dz))
+    t3 = cKDTree(cloud)
+    shift = np.array([0.0, 0.0, vert])
+    for _ in range(iterations):
+        d, i = t3.query(pts - shift)
+        step = np.median((pts - shift) - cloud[i], axis=0)
+        step[2] = 0.0
+        shift[:2] += step[:2]
+        if np.linalg.norm(step[:2]) < 1e-4:
+            break
+    d, _ = t3.query(pts - shift)
+    d0, _ = t3.query(pts)
+    return {"n_points": int(len(pts)), "vertical_offset_m": vert, "vertical_abs_median_m": float(np.median(np.abs(dz - vert))),
+            "horizontal_offset_m": float(np.linalg.norm(shift[:2])), "horizontal_offset_xy_m": [float(shift[0]), float(shift[1])],
+            "nn_distance_median_m": float(np.median(d0)), "nn_distance_after_shift_median_m": float(np.median(d)),
+            "method": "vertical: median of z minus the median z of the 8 nearest cloud points in plan; horizontal: "
+                      "translation-only ICP (median of nearest-neighbour offsets, vertical offset removed first)"}

@@ -1,0 +1,181 @@
+"""``gtkit report DIR``: the pseudo-GT quality report, ``reports/gt_report.json`` plus a readable
+``reports/gt_report.md`` with SVG plots. Truth (``truth/``) and an independent point cloud are
+read only through :mod:`gtkit.evaluate.gt_report`."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..io.atomic import write_json, write_text
+from ..io.poses import read_poses
+from ..project import Project
+from .blocks import QUERIES_STAGE, REFERENCE_STAGE
+from .register import STAGE as REGISTER_STAGE
+
+
+@dataclass
+class ReportSettings:
+    point_cloud: str | None = None      # independent LAS/LAZ to compare gtkit's reference points with
+    point_cloud_crs: str | None = None  # its CRS when the file does not say (default: the file's, else project's)
+
+
+def _load(p: Path):
+    return json.loads(p.read_text()) if p.is_file() else None
+
+
+def _svg_bars(title: str, labels: list[str], values: list[float], unit: str, limit: float | None = None) -> str:
+    w, h, left, bottom = 720, 260, 60, 70
+    n = max(len(values), 1)
+    vmax = max([v for v in values if np.isfinite(v)] + [limit or 0, 1e-9]) * 1.1
+    bw = (w - left - 10) / n
+    out = [f'<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-family="sans-serif" font-size="10">',
+           f'<text x="{w / 2}" y="14" text-anchor="middle" font-size="13">{title}</text>',
+           f'<line x1="{left}" y1="{h - bottom}" x2="{w - 10}" y2="{h - bottom}" stroke="black"/>']
+    for frac in (0, 0.5, 1.0):
+        y = h - bottom - frac * (h - bottom - 25)
+        out.append(f'<text x="{left - 4}" y="{y + 3}" text-anchor="end">{frac * vmax:.3g} {unit}</text>')
+    for k, (lab, v) in enumerate(zip(labels, values)):
+        x = left + k * bw
+        vv = v if np.isfinite(v) else vmax
+        bh = vv / vmax * (h - bottom - 25)
+        col = "#c0392b" if not np.isfinite(v) or (limit and v > limit) else "#2e86c1"
+        out.append(f'<rect x="{x + 1:.1f}" y="{h - bottom - bh:.1f}" width="{max(bw - 2, 1):.1f}" height="{bh:.1f}" fill="{col}"/>')
+        out.append(f'<text transform="translate({x + bw / 2:.1f},{h - bottom + 6}) rotate(60)" font-size="8">{lab}</text>')
+    if limit:
+        y = h - bottom - limit / vmax * (h - bottom - 25)
+        out.append(f'<line x1="{left}" y1="{y:.1f}" x2="{w - 10}" y2="{y:.1f}" stroke="#c0392b" stroke-dasharray="4"/>')
+    out.append("</svg>")
+    return "\n".join(out)
+
+
+def _fmt(v, nd=3):
+    return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
+
+
+def run(project: Project | str | Path, settings: ReportSettings | None = None) -> dict:
+    project = project if isinstance(project, Project) else Project.load(project)
+    settings = settings or ReportSettings()
+    P = project.paths
+    ref = _load(P.stage(REFERENCE_STAGE) / "block.json")
+    qsum = _load(P.stage(QUERIES_STAGE) / "summary.json") or {}
+    reg = _load(P.stage(REGISTER_STAGE) / "registration.json")
+    review = _load(P.review) or {}
+    rep: dict = {"project": project.name, "reference_block": ref, "query_blocks": qsum}
+    est = {}
+    if reg:
+        est = read_poses(P.stage(REGISTER_STAGE) / "poses.txt") if (P.stage(REGISTER_STAGE) / "poses.txt").is_file() else {}
+        rep.update({k: reg.get(k) for k in ("median_reproj_px", "mean_reproj_px", "median_tiepoint_reproj_px",
+                                             "n_registered", "n_images", "sequences", "bad_tiepoints")})
+        rep["per_image"] = {n: dict(v) for n, v in reg.get("images", {}).items()}
+    else:
+        rep.update({"median_reproj_px": None, "median_tiepoint_reproj_px": None, "n_registered": 0, "n_images": 0,
+                    "per_image": {}})
+    # every query photo of the blocks, registered or not
+    names = sorted(set(rep["per_image"]) | {n for b in qsum.values() for n in (b.get("unregistered") or {})})
+    for n in names:
+        rep["per_image"].setdefault(n, {"registered": False})
+        rep["per_image"][n]["registered"] = n in est
+        if n in review:
+            rep["per_image"][n]["review"] = review[n]
+    if review:
+        vals = list(review.values())
+        rep["review"] = {k: vals.count(k) for k in ("accept", "reject", "needs-work")}
+    truth = P.truth / "poses.txt"
+    if truth.is_file():
+        from ..evaluate.gt_report import truth_errors
+
+        te = truth_errors(est, truth, names)
+        rep["median_pos_err_m"], rep["median_rot_err_deg"] = te["median_pos_err_m"], te["median_rot_err_deg"]
+        rep["truth_recall"] = {k: v for k, v in te.items() if k.startswith("recall")}
+        for n, e in te["per_image"].items():
+            rep["per_image"][n].update(e)
+        if ref is not None:
+            from ..sfm.geometry import model_poses  # noqa: F401 (poses.txt holds them)
+            rp = read_poses(P.stage(REFERENCE_STAGE) / "poses.txt")
+            rt = truth_errors(rp, truth, sorted(rp))
+            rep["reference_median_pos_err_m"], rep["reference_median_rot_err_deg"] = rt["median_pos_err_m"], rt["median_rot_err_deg"]
+    if settings.point_cloud and ref is not None:
+        import pycolmap
+
+        from ..evaluate.gt_report import cloud_offsets, read_point_cloud
+
+        rec = pycolmap.Reconstruction(P.stage(REFERENCE_STAGE) / "model")
+        pts = np.array([p.xyz for p in rec.points3D.values()])
+        cloud = read_point_cloud(Path(settings.point_cloud), project.frame, settings.point_cloud_crs)
+        rep["point_cloud_comparison"] = {"cloud": str(settings.point_cloud), **cloud_offsets(pts, cloud)}
+    P.reports.mkdir(parents=True, exist_ok=True)
+    write_json(P.reports / "gt_report.json", rep, indent=1)
+    write_text(P.reports / "gt_report.md", _markdown(rep, P.reports))
+    return rep
+
+
+def _markdown(rep: dict, folder: Path) -> str:
+    L = [f"# Pseudo-GT report: {rep['project']}", ""]
+    L += ["| figure | value |", "|---|---|",
+          f"| query photos registered | {rep['n_registered']} / {rep['n_images']} |",
+          f"| median reprojection error (SfM points, joint BA) | {_fmt(rep.get('median_reproj_px'), 2)} px |",
+          f"| median tie-point reprojection error | {_fmt(rep.get('median_tiepoint_reproj_px'), 2)} px |"]
+    if "median_pos_err_m" in rep:
+        L += [f"| median position error vs truth | {_fmt(rep['median_pos_err_m'])} m |",
+              f"| median rotation error vs truth | {_fmt(rep['median_rot_err_deg'])} ° |"]
+    if rep.get("reference_median_pos_err_m") is not None:
+        L += [f"| reference block vs truth | {_fmt(rep['reference_median_pos_err_m'])} m, "
+              f"{_fmt(rep['reference_median_rot_err_deg'])} ° |"]
+    ref = rep.get("reference_block")
+    if ref:
+        geo = ref.get("georegistration", {})
+        L += [f"| reference block | {ref['n_registered']} / {ref['n_images']} photos, {ref.get('n_points3D')} points, "
+              f"mean reprojection {_fmt(ref.get('mean_reproj_px'), 2)} px |",
+              f"| georegistration ({geo.get('used')}) | RMSE {_fmt(geo.get('rmse_inliers_m'))} m over "
+              f"{geo.get('n_inliers')} inliers |",
+              f"| GCP residual median / RMSE | {_fmt(geo.get('gcp_median_err_m'))} m / {_fmt(geo.get('gcp_rmse_m'))} m |"]
+    pc = rep.get("point_cloud_comparison")
+    if pc:
+        L += [f"| vertical offset from {Path(pc['cloud']).name} | {pc['vertical_offset_m']:+.3f} m (median) |",
+              f"| horizontal offset from {Path(pc['cloud']).name} | {pc['horizontal_offset_m']:.3f} m "
+              f"(dx {pc['horizontal_offset_xy_m'][0]:+.3f}, dy {pc['horizontal_offset_xy_m'][1]:+.3f}) |",
+              "", f"Method: {pc['method']}."]
+    if ref and ref.get("georegistration", {}).get("gcp_residuals"):
+        L += ["", "## GCP residuals", "", "| GCP | dx m | dy m | dz m | error m | clicks used |", "|---|---|---|---|---|---|"]
+        for n, g in ref["georegistration"]["gcp_residuals"].items():
+            L.append(f"| {n} | {_fmt(g.get('dx_m'))} | {_fmt(g.get('dy_m'))} | {_fmt(g.get('dz_m'))} | "
+                     f"{_fmt(g.get('err_m'))} | {g.get('clicks_used', '–')}/{g.get('clicks_total', '–')} |"
+                     if g["status"] == "ok" else f"| {n} | {g['reason']} | | | | |")
+    L += ["", "## Sequences", ""]
+    for seq, s in (rep.get("sequences") or {}).items():
+        L.append(f"- **{seq}**: " + (f"ERROR: {s['error']}" if s["status"] == "error" else
+                                     f"registered; {s['n_inliers']}/{s['n_tiepoints']} tie points inliers, "
+                                     f"Sim(3) RMSE {s['sim3_rmse_m']:.3f} m"))
+    for seq, b in (rep.get("query_blocks") or {}).items():
+        for n, why in (b.get("unregistered") or {}).items():
+            L.append(f"  - not in the {seq} block: {n}: {why}")
+    bad = rep.get("bad_tiepoints") or {}
+    if bad:
+        L += ["", "## Bad tie points (excluded or corrected)", ""]
+        for tid, b in bad.items():
+            L.append(f"- {tid}: {b['reason']}" + "".join(f"; {c['image']} off by {c['residual_px']:.0f} px"
+                                                          for c in b.get("dropped_clicks", [])))
+    per = rep.get("per_image", {})
+    if per:
+        names = sorted(per)
+        short = [n.split("/")[-2] + "/" + n.split("/")[-1].split(".")[0] for n in names]
+        if "median_pos_err_m" in rep:
+            v = [per[n].get("pos_err_m", np.inf) for n in names]
+            write_text(folder / "gt_pos_err.svg", _svg_bars("position error vs truth per query photo", short, v, "m", 0.10))
+            L += ["", "![position errors](gt_pos_err.svg)"]
+        sv = [per[n].get("sigma_pos_m", np.nan) for n in names]
+        if np.any(np.isfinite(sv)):
+            write_text(folder / "gt_sigma.svg", _svg_bars("BA position standard deviation per query photo", short,
+                                                          [x if np.isfinite(x) else 0.0 for x in sv], "m"))
+            L += ["", "![position sigma](gt_sigma.svg)"]
+        L += ["", "## Per image", "", "| image | registered | σ pos m | σ rot ° | pos err m | rot err ° | review |",
+              "|---|---|---|---|---|---|---|"]
+        for n in names:
+            e = per[n]
+            L.append(f"| {n} | {'yes' if e.get('registered') else 'NO'} | {_fmt(e.get('sigma_pos_m'))} | "
+                     f"{_fmt(e.get('sigma_rot_deg'))} | {_fmt(e.get('pos_err_m'))} | {_fmt(e.get('rot_err_deg'))} | "
+                     f"{e.get('review', '')} |")
+    return "\n".join(L) + "\n"
