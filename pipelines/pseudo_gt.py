@@ -1,0 +1,66 @@
+"""Pseudo ground truth for a new site, top-down (UAVD4L §3.2, with pycolmap instead of a
+commercial package):
+
+    reference photos -> SfM, georegistered by RTK GPS and GCPs   (gtkit sfm DIR --block reference)
+    each query sequence's wide photos -> its own SfM block      (gtkit sfm DIR --block queries)
+    tie points (GUI clicks or simulated) -> Sim(3) per sequence -> one joint BA, reference fixed
+                                                                 (gtkit register DIR)
+    quality report, against truth/ where it exists              (gtkit report DIR)
+
+Every stage resumes when its settings and inputs are unchanged (work/<stage>/stage.json).
+
+    .venv/bin/python -m pipelines.pseudo_gt DIR [--point-cloud model.laz] [--force]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+
+from gtkit.project import Project
+from gtkit.sfm import blocks, register, report
+
+log = logging.getLogger("pseudo_gt")
+
+
+def main(root: str, sfm: blocks.SfmSettings | None = None, reg: register.RegisterSettings | None = None,
+         rep: report.ReportSettings | None = None, force: bool = False) -> dict:
+    project = Project.load(root)
+    sfm = sfm or blocks.SfmSettings()
+    times = {}
+
+    def stage(name, fn, *a, **kw):
+        log.info("[%s] running ...", name)
+        t = time.time()
+        out = fn(*a, **kw)
+        times[name] = round(time.time() - t, 1)
+        log.info("[%s] done in %.1f s", name, times[name])
+        return out
+
+    ref = stage("sfm_reference", blocks.run_reference, project, sfm, force=force)
+    qb = {}
+    if project.paths.query_sequences():
+        qb = stage("sfm_queries", blocks.run_queries, project, sfm, force=force)
+    r = {}
+    if qb and project.paths.tiepoints.is_file():
+        r = stage("register", register.run, project, reg, force=force)
+    summary = stage("report", report.run, project, rep)
+    return {"seconds": times, "reference": {k: ref.get(k) for k in ("n_registered", "n_images", "mean_reproj_px")},
+            "sequences": r.get("sequences"),
+            **{k: summary.get(k) for k in ("n_registered", "n_images", "median_reproj_px", "median_tiepoint_reproj_px",
+                                           "median_pos_err_m", "median_rot_err_deg", "point_cloud_comparison")}}
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("project")
+    ap.add_argument("--point-cloud", default=None, help="independent LAS/LAZ to compare the reference points with")
+    ap.add_argument("--gps-inlier-m", type=float, default=None, help="GPS Sim(3) threshold (consumer GPS: 5)")
+    ap.add_argument("--force", action="store_true")
+    a = ap.parse_args()
+    s = blocks.SfmSettings()
+    if a.gps_inlier_m:
+        s.georegister.gps_inlier_m = a.gps_inlier_m
+    print(json.dumps(main(a.project, s, rep=report.ReportSettings(a.point_cloud), force=a.force), indent=2, default=str))
