@@ -68,6 +68,18 @@ def project(tmp_path):
             write_jpeg_with_meta(P.query_images / "seq1" / f"{k:04d}_{s}.jpg", np.zeros((480, 640, 3), np.uint8),
                                  timestamp=f"2026:05:14 16:30:{k:02d}")
     write_poses(P.stage("localize") / "poses.txt", poses)
+    # truth as the sample generator writes it (for the evaluation test)
+    lines = ["target,time_s,datetime,x,y,z"]
+    shots = []
+    for k, X in enumerate(truth.values()):
+        lines.append(f"car,{100 + 2 * k}.00,2026-05-14T16:31:{40 + 2 * k}.000,{X[0]},{X[1]},{X[2]}")
+        shots.append({"name": f"queries/seq1/{k:04d}_Z.jpg", "time_s": 100 + 2 * k})
+    lines.append("car,120.00,2026-05-14T16:32:00.000,0,0,0")
+    (P.truth).mkdir()
+    (P.truth / "targets.csv").write_text("\n".join(lines) + "\n")
+    (P.truth / "shots.json").write_text(json.dumps({"shots": shots}))
+    (P.truth / "rig.json").write_text(json.dumps({"R": RIG.R_zw.tolist(), "t": (-RIG.R_zw @ RIG.offset).tolist(),
+                                                  "zoom": ZOOM.to_line()}))
     with open(P.detections, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["image", "x", "y", "label", "time"])
@@ -105,6 +117,14 @@ def test_track_stage_places_targets_and_reports_misses(project):
     # second run resumes; the CLI works and errors name the file
     assert run(proj, TrackSettings())["n_located"] == 5
     assert main(["track", str(P.root), "--force", "--no-smooth"]) == 0
+    # evaluation against the truth: exact poses -> centimetres; misses counted as failures
+    assert main(["track", "evaluate", str(P.root)]) == 0
+    rep = json.loads(P.tracking_report.read_text())
+    assert rep["n_targets"] == 7 and rep["n_failed"] == 2
+    assert rep["median_err_h_m"] < 0.03 and rep["median_err_3d_m"] < 0.03
+    assert rep["recall_h"]["1m"] == pytest.approx(5 / 7)
+    assert rep["rig"]["rotation_err_deg"] < 1e-6 and abs(rep["rig"]["focal_err_pct"]) < 1e-9
+    assert (P.reports / "tracking.png").stat().st_size > 10_000
 
 
 def test_bad_detection_input_names_the_file(tmp_path):

@@ -312,7 +312,8 @@ def calibrate_pairs(pairs, wide_cams, zoom_init: list[ZoomSetting], zoom_group, 
                              f"{wc.width}x{wc.height}", wname)
         feats = _sift(_gray(wide_img), settings.sift_features)
         nominal = wc.fx / zc.fx
-        factors = ([scale_hint[g] / nominal] if g in scale_hint else []) + list(settings.scale_search)
+        # once a pair of this setting matched, its observed scale is the only one tried
+        factors = [scale_hint[g] / nominal] if g in scale_hint else list(settings.scale_search)
         got = None
         for fct in factors:
             got = match_pair(wide_img, zoom_img, min(1.0, nominal * fct), settings, feats)
