@@ -91,7 +91,7 @@ def _part_bytes(mesh) -> int:
     for p in mesh.parts:
         n += len(p.vertices) * 9 * 4 + p.faces.size * 4
         if p.texture is not None:
-            n += int(p.texture.shape[0] * p.texture.shape[1] * 3 * 4 / 3)  # + mipmaps
+            n += int(p.texture.shape[0] * p.texture.shape[1] * 4 * 4 / 3)  # RGBA texels + mipmaps
     return n
 
 
