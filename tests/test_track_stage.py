@@ -125,6 +125,7 @@ def test_track_stage_places_targets_and_reports_misses(project):
     assert rep["recall_h"]["1m"] == pytest.approx(5 / 7)
     assert rep["rig"]["rotation_err_deg"] < 1e-6 and abs(rep["rig"]["focal_err_pct"]) < 1e-9
     assert (P.reports / "tracking.png").stat().st_size > 10_000
+    assert main(["evaluate", str(P.root), "--what", "tracking"]) == 0  # the shared evaluate command
 
 
 def test_bad_detection_input_names_the_file(tmp_path):

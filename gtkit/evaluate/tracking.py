@@ -239,7 +239,41 @@ def evaluate_tracking(paths: Paths | str | Path, tracks: Path | None = None, out
     if plot:
         rep["plot"] = str(plot_tracks(per, truth, out.with_suffix(".png")))
     write_json(out, rep)
+    write_text(out.with_suffix(".md"), readable(rep))
     return rep
+
+
+def evaluate_project(project, **_options) -> dict:
+    """Entry point for ``gtkit evaluate`` (``--what tracking``)."""
+    paths = project.paths if hasattr(project, "paths") else Paths(project)
+    return evaluate_tracking(paths)
+
+
+def readable(rep: dict) -> str:
+    def f(v, nd=2):
+        return "-" if v is None else f"{v:.{nd}f}"
+
+    lines = [f"# Target tracking vs truth {rep.get('label') or ''}".rstrip(), "",
+             f"tracks: `{rep['tracks']}`", "",
+             f"- detections: {rep['n_targets']}, failed (no coordinate): {rep['n_failed']} {rep['failures'] or ''}",
+             f"- median error horizontal {f(rep['median_err_h_m'])} m, 3D {f(rep['median_err_3d_m'])} m "
+             f"(p90 horizontal {f(rep['p90_err_h_m'])} m)",
+             "- recall (horizontal): " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in rep["recall_h"].items()),
+             "- recall (3D): " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in rep["recall_3d"].items())]
+    if rep.get("smoothed"):
+        sm = rep["smoothed"]
+        lines.append(f"- smoothed track: median horizontal {f(sm['median_err_h_m'])} m, 3D {f(sm['median_err_3d_m'])} m")
+    if rep.get("median_sigma_h_m") is not None:
+        lines.append(f"- propagated sigma (horizontal, median) {f(rep['median_sigma_h_m'])} m; errors within "
+                     f"2 sigma: {100 * rep['share_within_2sigma_h']:.0f}%")
+    for lab, b in rep.get("by_label", {}).items():
+        lines.append(f"- {lab}: {b['n']} detections, median horizontal {f(b['median_err_h_m'])} m")
+    if rep.get("rig"):
+        r = rep["rig"]
+        lines.append(f"- rig calibration: rotation error {f(r['rotation_err_deg'], 4)} deg, focal error "
+                     f"{f(r['focal_err_pct'], 3)} % ({r.get('n_pairs')} pairs)")
+    lines += ["", f"paper: {rep['paper']}", ""]
+    return "\n".join(lines)
 
 
 def plot_tracks(per: list[dict], truth: TruthTracks, path: Path) -> Path:
