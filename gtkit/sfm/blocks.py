@@ -41,7 +41,8 @@ class SfmSettings:
     georegister: GeoregisterSettings = field(default_factory=GeoregisterSettings)
     refine_intrinsics: str = "auto"   # auto: refine only cameras without a cameras.txt prior; yes; no
     query_pattern: str = "*_W.*"      # which photos of a query sequence form its block
-    gps_prior_sigma_m: float = 5.0    # written with the CARTESIAN pose priors (used for pairing)
+    pair_by_footprint: bool = True    # spatial pairs by where photos look (gimbal), not where they were taken
+    gps_prior_sigma_m: float = 5.0    # written with the CARTESIAN pose priors (used only for pairing)
     num_threads: int = 2
 
 
@@ -65,6 +66,27 @@ def gps_positions(project: Project, names: list[str]) -> dict[str, np.ndarray]:
         m = read_photo_meta(P.images / n, require=())
         if m.has_gps and m.altitude is not None:
             out[n] = project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
+    return out
+
+
+def pairing_positions(project: Project, names: list[str], centres: dict[str, np.ndarray],
+                      max_range_factor: float = 3.0) -> dict[str, np.ndarray]:
+    """Where each photo looks: the camera centre moved along the optical axis (DJI gimbal angles)
+    to the ground (height above ground from DJI RelativeAltitude). Oblique photos that see the
+    same ground are then neighbours for spatial pairing even when taken far apart. Photos without
+    gimbal angles or relative altitude keep their camera centre."""
+    from ..conventions import dji_to_rotation
+
+    out = dict(centres)
+    for n in names:
+        if n not in centres:
+            continue
+        m = read_photo_meta(project.paths.images / n, require=())
+        if not m.has_gimbal or m.rel_alt is None or m.rel_alt <= 0:
+            continue
+        d = dji_to_rotation(m.gimbal_yaw, m.gimbal_pitch, m.gimbal_roll).T @ np.array([0.0, 0.0, 1.0])
+        r = m.rel_alt / max(-d[2], 1.0 / max_range_factor)
+        out[n] = centres[n] + d * r
     return out
 
 
@@ -119,7 +141,8 @@ def build_block(project: Project, names: list[str], out: Path, pairings: list[st
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     positions = gps_positions(project, names)
-    groups = camera_groups(project, names, positions)
+    look = pairing_positions(project, names, positions) if settings.pair_by_footprint else positions
+    groups = camera_groups(project, names, look)
     db = out / "database.db"
     build_database(db, P.images, groups, settings.features, settings.gps_prior_sigma_m)
     t_feat = time.time()

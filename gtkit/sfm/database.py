@@ -20,14 +20,14 @@ log = logging.getLogger(__name__)
 @dataclass
 class FeatureSettings:
     max_image_size: int = 1600      # px; images are downscaled for SIFT, keypoints are in full-size pixels
-    max_num_features: int = 4000    # SIFT keypoints per image (CPU time grows with it)
+    max_num_features: int = 3000    # SIFT keypoints per image (CPU time grows with it)
     num_threads: int = 2
 
 
 @dataclass
 class MatchSettings:
     exhaustive_max_images: int = 25     # exhaustive pairs up to this many images, spatial above
-    spatial_neighbors: int = 30         # spatial pairing: nearest GPS neighbours per image
+    spatial_neighbors: int = 20         # spatial pairing: nearest neighbours per image
     spatial_max_distance_m: float = 250.0
     sequential_overlap: int = 8         # query sequences: consecutive neighbours matched
     min_num_inliers: int = 15
@@ -40,7 +40,7 @@ class CameraGroup:
 
     names: list[str]
     camera: Camera | None = None
-    positions: dict[str, np.ndarray] = field(default_factory=dict)  # local-frame GPS centres
+    positions: dict[str, np.ndarray] = field(default_factory=dict)  # local-frame pairing positions
 
 
 def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], settings: FeatureSettings,
