@@ -64,6 +64,7 @@ class TieStatus:
     sim3_residual_m: float | None = None
     inlier: bool = False
     reason: str = ""
+    mistake: bool = False      # a gross click mistake was detected (dropped click or Sim(3) outlier)
 
     def as_dict(self) -> dict:
         return {"id": self.id, "inlier": self.inlier, "reason": self.reason,
@@ -111,13 +112,14 @@ def register_sequence(seq: str, qrec: pycolmap.Reconstruction, ref_poses, ref_ca
     prefix = f"queries/{seq}/"
     status = []
     for tp in tiepoints:
-        qobs_all = tp.in_block(prefix)
+        qobs_all = [o for o in tp.in_block(prefix) if o.image in qposes]  # e.g. zoom photos are in no block
         if not qobs_all:
             continue
         st = TieStatus(tp.id)
         status.append(st)
         rtri, robs, rused, rdrop = _triangulate(tp.in_block("reference/"), ref_poses, ref_cams, settings.tie_max_px)
         st.dropped_clicks += rdrop
+        st.mistake = bool(rdrop)
         if rtri.xyz is None:
             st.reason = f"reference: {rtri.reason} ({len(robs)} clicks in registered reference photos)"
             continue
@@ -132,6 +134,7 @@ def register_sequence(seq: str, qrec: pycolmap.Reconstruction, ref_poses, ref_ca
             continue
         qtri, _, qused, qdrop = _triangulate(qobs_all, qposes, qcams, settings.tie_max_px)
         st.dropped_clicks += qdrop
+        st.mistake = st.mistake or bool(qdrop) or "disagree" in qtri.reason
         if qtri.xyz is None:
             st.reason = f"query: {qtri.reason or 'no clicks in registered query photos'} ({len(qobs)} clicks in registered photos)"
             continue
@@ -145,7 +148,7 @@ def register_sequence(seq: str, qrec: pycolmap.Reconstruction, ref_poses, ref_ca
     for s, r, ok in zip(usable, fit.residuals_m, fit.inliers):
         s.sim3_residual_m, s.inlier = float(r), bool(ok)
         if not ok:
-            s.reason = f"Sim(3) outlier ({r:.2f} m from the fit)"
+            s.reason, s.mistake = f"Sim(3) outlier ({r:.2f} m from the fit)", True
     return fit.tgt_from_src, status
 
 
@@ -266,6 +269,17 @@ def point_reprojection_errors(rec, point_ids) -> np.ndarray:
     return np.asarray(errs)
 
 
+def _count_query_images(P, seq_dirs) -> int:
+    """All photos of the query blocks (registered or not), from each block's record."""
+    import json
+
+    n = 0
+    for seq, d in seq_dirs.items():
+        f = d.parent / "block.json"
+        n += json.loads(f.read_text())["n_images"] if f.is_file() else len(list((P.query_images / seq).glob("*_W.*")))
+    return n
+
+
 # --- the stage ---------------------------------------------------------------------------------
 
 def run(project: Project | str | Path, settings: RegisterSettings | None = None, force: bool = False) -> dict:
@@ -367,11 +381,11 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
                 info["sigma_pos_m"] = float(np.sqrt(np.trace(Cc)))
                 info["sigma_rot_deg"] = float(np.degrees(np.sqrt(np.trace(c[:3, :3]))))
             per_image[im.name] = info
-        n_all = sum(len(list((P.query_images / s).glob("*_W.*"))) for s in seq_dirs)
+        n_all = _count_query_images(P, seq_dirs)
         bad = {}
         for seq, st in statuses.items():
             for s in st:
-                if not s.inlier or s.dropped_clicks:
+                if s.mistake or "disagree" in s.reason:
                     bad[s.id] = {"sequence": seq, "reason": s.reason or "some clicks dropped as mistakes",
                                  "dropped_clicks": s.dropped_clicks}
         for rj in rejected:
@@ -394,8 +408,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         if covs:
             write_covariances(out / "covariances.txt", covs)
     else:
-        n_all = sum(len(list((P.query_images / s).glob("*_W.*"))) for s in seq_dirs)
-        result["n_images"] = n_all
+        result["n_images"] = _count_query_images(P, seq_dirs)
         for f in ("poses.txt", "intrinsics.txt", "covariances.txt"):
             (out / f).unlink(missing_ok=True)
     write_json(out / "registration.json", result)
