@@ -104,7 +104,7 @@ def test_db_views_without_depth_fail_the_query_and_the_run_goes_on(site):
 def test_dask_local_cluster_renders_and_localizes_like_local_processes(site):
     pytest.importorskip("dask.distributed")
     out = site / "work" / "render_db"
-    views = [v for v in json.loads((out / "views.json").read_text())["views"] if v["kept"]][:4]
+    views = [v for v in json.loads((out / "views.json").read_text())["views"] if v["kept"]][:2]
     before = [np.load(out / "depth" / f"{v['name']}.npz")["depth"] for v in views]
     ex = make_executor(ExecutorSettings("dask", 2))   # two spawned worker processes, one GL context each
     try:
@@ -118,11 +118,11 @@ def test_dask_local_cluster_renders_and_localizes_like_local_processes(site):
     assert [r[0][0] for r in res] == [v["name"] for v in views]
     for v, d in zip(views, before):
         assert np.array_equal(np.load(out / "depth" / f"{v['name']}.npz")["depth"], d, equal_nan=True)
-    s = localize.LocalizeSettings(query_glob="queries/seq1/000[1-3]_W.jpg")
+    s = localize.LocalizeSettings(query_glob="queries/seq1/000[12]_W.jpg")
     o = localize.run(site, s, ablation="dask-check", executor=ExecutorSettings("dask", 2))
     a = read_poses(o / "poses.txt")
     b = read_poses(site / "work" / "localize" / "poses.txt")
-    assert len(a) == 3
+    assert len(a) == 2
     for n, p in a.items():
         dp, dr = p.error_to(b[n])
         assert dp < 1e-6 and dr < 1e-6                            # same seeds, same answer

@@ -8,6 +8,7 @@ no change here.
 from __future__ import annotations
 
 import importlib
+import inspect
 import pkgutil
 
 
@@ -48,8 +49,12 @@ def run(args):
     done = 0
     for k in todo:
         mod = importlib.import_module(f"gtkit.evaluate.{k}")
+        fn = mod.evaluate_project
+        params = inspect.signature(fn).parameters
+        kw = {"ablation": args.ablation} if "ablation" in params or any(
+            p.kind is p.VAR_KEYWORD for p in params.values()) else {}
         try:
-            rep = mod.evaluate_project(proj, ablation=args.ablation)
+            rep = fn(proj, **kw)
         except GtkitError as e:
             if args.what == "all":
                 print(f"{k}: skipped ({e})")

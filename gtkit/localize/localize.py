@@ -60,7 +60,7 @@ class LocalizeSettings:
     gps_radius_m: float | None = None  # keep views within this horizontal radius of the GPS prior
     top_k: int = 3                     # retrieved views per query (paper)
     max_rel_jump: float = 0.03         # depth discontinuity test for lifting (relative)
-    pnp: PnPSettings = PnPSettings()   # gravity_deg = gamma_eps = 2 (paper); None = no check
+    pnp: PnPSettings = PnPSettings()   # gravity_deg = gamma_eps (5 deg; paper 2); None = no check
     db_heights: tuple[float, ...] | None = None        # use only these database levels
     db_highest_only: bool = False                      # use only the highest database level
     db_paper_pitches: tuple[float, ...] | None = None  # use only these paper pitches (0 = nadir)
@@ -72,6 +72,7 @@ ABLATIONS: dict[str, dict] = {
     "default": {},
     "no-rot-prior": {"rotation_prior": False},
     "no-gravity": {"pnp": {"gravity_deg": None}},
+    "gravity-2deg": {"pnp": {"gravity_deg": 2.0}},                                   # the paper's gamma_eps
     "no-priors": {"rotation_prior": False, "pnp": {"gravity_deg": None}},
     "top1": {"top_k": 1},
     "render-1h-p45": {"db_highest_only": True, "db_paper_pitches": (45.0,)},   # paper: H=150, pitch 45
