@@ -187,19 +187,43 @@ class TileStreamer:
 
     def render_ortho(self, xmin: float, ymin: float, xmax: float, ymax: float, gsd: float, *,
                      lighting: Lighting = NO_LIGHT, with_rgb: bool = True, tile: int = 2048) -> RenderResult:
-        """Top-down RGB + highest height of an extent, drawing only the tiles that meet it."""
+        """Top-down RGB + highest height of an extent, window by window (``tile`` pixels a side).
+
+        Each window draws only the tiles that meet it, and tiles beyond the budget are evicted
+        between windows, so a large DSM never needs the whole model resident. The windows are
+        the ones :meth:`Renderer.render_ortho` uses for the same ``tile``, so the raster is
+        bit-identical to rendering the whole model at once."""
+        from ..errors import GtkitError
+
         self._begin()
-        names = self.tiles_in_extent(xmin, ymin, xmax, ymax)
-        ids = self._ensure(names)
-        t0 = time.perf_counter()
-        out = self.renderer.render_ortho(xmin, ymin, xmax, ymax, gsd, lighting=lighting, with_rgb=with_rgb,
-                                         parts=ids, tile=tile) if ids else None
-        if out is None:
-            W, H = int(round((xmax - xmin) / gsd)), int(round((ymax - ymin) / gsd))
-            out = RenderResult(np.zeros((H, W, 3), np.uint8) if with_rgb else None, np.full((H, W), np.nan, np.float32))
-        self.stats.render_s = time.perf_counter() - t0
-        self._end(names)
-        return out
+        W, H = int(round((xmax - xmin) / gsd)), int(round((ymax - ymin) / gsd))
+        if W <= 0 or H <= 0:
+            raise GtkitError(f"empty orthographic extent {W}x{H} pixels")
+        out_h = np.full((H, W), np.nan, np.float32)
+        out_rgb = np.zeros((H, W, 3), np.uint8) if with_rgb else None
+        used: set[str] = set()
+        t_render = 0.0
+        for r0 in range(0, H, tile):
+            for c0 in range(0, W, tile):
+                h, w = min(tile, H - r0), min(tile, W - c0)
+                x0, x1 = xmin + c0 * gsd, xmin + (c0 + w) * gsd
+                y1, y0 = ymax - r0 * gsd, ymax - (r0 + h) * gsd
+                names = self.tiles_in_extent(x0, y0, x1, y1)
+                if not names:
+                    continue
+                ids = self._ensure(names)
+                t0 = time.perf_counter()
+                res = self.renderer.render_ortho(x0, y0, x1, y1, gsd, lighting=lighting, with_rgb=with_rgb,
+                                                 parts=ids, tile=tile)
+                t_render += time.perf_counter() - t0
+                out_h[r0:r0 + h, c0:c0 + w] = res.depth
+                if with_rgb:
+                    out_rgb[r0:r0 + h, c0:c0 + w] = res.rgb
+                used.update(names)
+                self._evict(set(names))
+        self.stats.render_s = t_render
+        self._end(sorted(used))
+        return RenderResult(out_rgb, out_h)
 
     def release(self) -> None:
         self.renderer.remove_parts([i for r in self._resident.values() for i in r.ids])
