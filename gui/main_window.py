@@ -48,8 +48,12 @@ class MainWindow(QMainWindow):
         self.undo_stack = QUndoStack(self)
         self.cache = ImageCache()
         pose_file = poses or self.session.get("review", {}).get("pose_file") or default_pose_file(P)
-        reg = default_pose_file(P)
-        self.ranker = OverlapRanker(P, self.project.frame, read_poses(reg) if reg else None)
+        rank_poses = {}  # registered poses where they exist (reference block, pseudo-GT), else priors
+        for f in (P.stage("sfm_reference") / "poses.txt", default_pose_file(P)):
+            if f is not None and f.is_file():
+                rank_poses.update(read_poses(f))
+        self.ranker = OverlapRanker(P, self.project.frame, rank_poses,
+                                    cache_file=P.stage("annotate") / "prior_ground_points.json")
         self.tiepoints = TiePointPage(P, self.store, self.cache, self.ranker, self.undo_stack)
         self.review = ReviewPage(self.project, pose_file)
         self.tabs = QTabWidget()
@@ -211,4 +215,7 @@ class MainWindow(QMainWindow):
 
     def closeEvent(self, e):
         self.save_session()
+        self.cache.shutdown()
+        self.tiepoints._pool.clear()
+        self.tiepoints._pool.waitForDone(30000)
         super().closeEvent(e)

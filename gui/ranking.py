@@ -70,22 +70,55 @@ def axis_ground_point(pose: Pose, z_ground: float, max_range: float = 2000.0) ->
 class OverlapRanker:
     """Ground points of every photo, computed once; ranks references for a query."""
 
-    def __init__(self, paths, frame, poses: dict[str, Pose] | None = None):
+    def __init__(self, paths, frame, poses: dict[str, Pose] | None = None, cache_file: Path | None = None):
         self.paths, self.frame = paths, frame
         self.poses = dict(poses or {})
         self.z_ground = ground_height(paths, frame)
         self._points: dict[str, np.ndarray | None] = {}
+        # prior ground points keyed by file size + mtime, so big projects open fast the second time
+        self.cache_file = cache_file
+        self._disk: dict = {}
+        if cache_file is not None and Path(cache_file).is_file():
+            try:
+                d = json.loads(Path(cache_file).read_text())
+                if d.get("z_ground") == self.z_ground:
+                    self._disk = d.get("points", {})
+            except (OSError, json.JSONDecodeError):
+                self._disk = {}
+        self._dirty = False
 
     def pose(self, name: str) -> Pose | None:
         if name in self.poses:
             return self.poses[name]
         return prior_pose(self.paths.images / name, self.frame)
 
+    def _stamp(self, name: str) -> str:
+        try:
+            st = (self.paths.images / name).stat()
+            return f"{st.st_size}-{st.st_mtime_ns}"
+        except OSError:
+            return ""
+
     def point(self, name: str) -> np.ndarray | None:
         if name not in self._points:
-            p = self.pose(name)
-            self._points[name] = None if p is None else axis_ground_point(p, self.z_ground)
+            if name not in self.poses and name in self._disk and self._disk[name][0] == self._stamp(name):
+                v = self._disk[name][1]
+                self._points[name] = None if v is None else np.array(v)
+            else:
+                p = self.pose(name)
+                self._points[name] = None if p is None else axis_ground_point(p, self.z_ground)
+                if name not in self.poses:
+                    v = self._points[name]
+                    self._disk[name] = [self._stamp(name), None if v is None else [float(x) for x in v]]
+                    self._dirty = True
         return self._points[name]
+
+    def save_cache(self) -> None:
+        if self.cache_file is not None and self._dirty:
+            from gtkit.io.atomic import write_json
+
+            write_json(self.cache_file, {"z_ground": self.z_ground, "points": self._disk})
+            self._dirty = False
 
     def rank(self, query: str, references: list[str]) -> list[tuple[str, float]]:
         """(reference, distance in metres between ground points), nearest first; references
@@ -96,4 +129,5 @@ class OverlapRanker:
             p = self.point(r)
             d = float(np.linalg.norm((p - q)[:2])) if (p is not None and q is not None) else float("inf")
             out.append((r, d))
+        self.save_cache()
         return sorted(out, key=lambda x: (x[1], x[0]))

@@ -168,7 +168,21 @@ class TiePointPage(QWidget):
             self.qview.set_view_state(views.get("query"))
             self.rview.set_view_state(views.get("reference"))
         self.refresh()
+        self._prefetch(names)
         self.session_changed.emit()
+
+    def _prefetch(self, ranked_refs: list[str]):
+        """Previews of the photos N / P / PgDn / PgUp would open, decoded in the background."""
+        want = []
+        if self.query in self.queries:
+            i = self.queries.index(self.query)
+            for q in (self.queries[(i + 1) % len(self.queries)], self.queries[(i - 1) % len(self.queries)]):
+                ranked = self.ranker.rank(q, self.references)
+                want += [q] + ([ranked[0][0]] if ranked else [])
+        if self.reference in ranked_refs:
+            i = ranked_refs.index(self.reference)
+            want += [ranked_refs[(i + d) % len(ranked_refs)] for d in (1, 2, -1)]
+        self.cache.prefetch(self.paths.images / n for n in dict.fromkeys(want) if n not in (self.query, self.reference))
 
     def _ref_item_changed(self, cur, _prev):
         if cur is not None and cur.data(ROLE) != self.reference:
@@ -308,6 +322,7 @@ class TiePointPage(QWidget):
         self._fill_tree()
 
     def _fill_tree(self):
+        self.tp_tree.setCurrentItem(None)  # else clear() re-selects item after item: quadratic
         self.tp_tree.clear()
         if not self.query:
             return
