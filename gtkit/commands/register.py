@@ -30,7 +30,7 @@ def run(args):
             failed += 1
             print(f"{seq}: ERROR {info['error']}")
         else:
-            print(f"{seq}: registered, {info['n_inliers']}/{info['n_tiepoints']} tie points inliers, "
+            print(f"{seq}: registered, {info['n_sim3_inliers']}/{info['n_tiepoints']} tie points Sim(3) inliers, {info['n_tiepoints_final_ba']} in the final BA, "
                   f"Sim(3) RMSE {info['sim3_rmse_m']:.3f} m")
     print(f"pseudo-GT: {r['n_registered']}/{r['n_images']} query photos; median reprojection "
           f"{r.get('median_reproj_px') or float('nan'):.2f} px, tie points {r.get('median_tiepoint_reproj_px') or float('nan'):.2f} px")

@@ -2,18 +2,22 @@
 refine everything in one joint bundle adjustment with the reference block held fixed.
 
 Per sequence:
-1. triangulate every tie point from its clicks in the reference block (fixed, georegistered
-   poses) and in the query block (its SfM poses); a click that disagrees with the others by
-   more than ``tie_max_px`` is dropped (gross mistake). A tie point seen in one query photo only
-   gets its query-block position from the depth of the block's own 3D points around the click.
+1. place every tie point in the reference block (fixed, georegistered poses) and in the query
+   block (its SfM poses): triangulated from its clicks where it has two or more (a click that
+   disagrees with the others by more than ``tie_max_px`` is dropped as a gross mistake), else
+   its one click is lifted to 3D with the depth of the block's own 3D points around it.
 2. robust Sim(3) (LO-RANSAC) from query-block to reference positions; tie points off the fit by
    more than ``sim3_max_error_m`` are outliers. Fewer than 3 usable tie points, collinear ones,
    or a failed fit: the sequence is an error with its reason (never a prior pose).
 3. transform the query block.
-Then one joint bundle adjustment: the reference photos that hold tie clicks keep their poses
-and intrinsics fixed; each registered query block enters with its own 3D points; each tie point
-is a 3D point observed in both blocks and so ties them together. Tie observations still off by
-more than ``ba_max_tie_px`` after a robust first pass are dropped and the BA is re-run.
+Then one joint bundle adjustment (the reference photos holding tie clicks keep their poses and
+intrinsics fixed; each registered query block enters with its own 3D points; each tie point is
+a 3D point observed in both blocks and so ties them together), in passes:
+a. robust (Cauchy) BA with the Sim(3) inliers;
+b. every tie point of the registered sequences is re-triangulated from all its clicks with the
+   refined poses; clicks off by more than ``ba_max_tie_px`` are dropped (listed as mistakes),
+   the rest (Sim(3) outliers of step 2 included, when now consistent) re-enter;
+c. final least-squares BA; its covariance gives each query photo's pose uncertainty.
 """
 from __future__ import annotations
 
@@ -105,44 +109,55 @@ def _triangulate(tp_obs, poses, cams, max_px):
     return tri, obs, used, dropped
 
 
-def register_sequence(seq: str, qrec: pycolmap.Reconstruction, ref_poses, ref_cams, tiepoints: list[TiePoint],
-                      settings: RegisterSettings) -> tuple[pycolmap.Sim3d, list[TieStatus]]:
+def _place(obs, poses, cams, rec, max_px):
+    """A tie point's position in one block from its clicks there: triangulated (>= 2 clicks, mistakes
+    dropped) or lifted with the block's depth (1 click). Returns (xyz|None, used, dropped, reason, how)."""
+    obs = [o for o in obs if o.image in poses]
+    if not obs:
+        return None, [], [], "no clicks in registered photos", ""
+    if len(obs) == 1:
+        X = depth_from_model(rec, obs[0].image, np.array([obs[0].x, obs[0].y]))
+        if X is None:
+            return None, [], [], "one click and too few block points near it", "depth"
+        return X, [obs[0].image], [], "", "depth"
+    tri, _, used, dropped = _triangulate(obs, poses, cams, max_px)
+    if tri.xyz is None:
+        return None, [], dropped, tri.reason, "triangulated"
+    return tri.xyz, [o.image for o in used], dropped, "", "triangulated"
+
+
+def register_sequence(seq: str, qrec: pycolmap.Reconstruction, ref_rec: pycolmap.Reconstruction,
+                      tiepoints: list[TiePoint], settings: RegisterSettings,
+                      ref_cache: dict | None = None) -> tuple[pycolmap.Sim3d, list[TieStatus]]:
     """Sim(3) of one query block into the reference frame; raises RegistrationError with the reason."""
     qposes, qcams = model_poses(qrec), model_cameras(qrec)
+    ref_poses, ref_cams = (ref_cache or {}).get("poses") or model_poses(ref_rec), (ref_cache or {}).get("cams") or model_cameras(ref_rec)
     prefix = f"queries/{seq}/"
     status = []
     for tp in tiepoints:
-        qobs_all = [o for o in tp.in_block(prefix) if o.image in qposes]  # e.g. zoom photos are in no block
-        if not qobs_all:
+        qobs = [o for o in tp.in_block(prefix) if o.image in qposes]  # e.g. zoom photos are in no block
+        if not qobs:
             continue
         st = TieStatus(tp.id)
         status.append(st)
-        rtri, robs, rused, rdrop = _triangulate(tp.in_block("reference/"), ref_poses, ref_cams, settings.tie_max_px)
-        st.dropped_clicks += rdrop
-        st.mistake = bool(rdrop)
-        if rtri.xyz is None:
-            st.reason = f"reference: {rtri.reason} ({len(robs)} clicks in registered reference photos)"
+        X, used, dropped, why, how = _place(tp.in_block("reference/"), ref_poses, ref_cams, ref_rec, settings.tie_max_px)
+        st.dropped_clicks += dropped
+        st.mistake = bool(dropped) or "disagree" in why
+        if X is None:
+            st.reason = f"reference: {why}"
             continue
-        st.ref_xyz, st.ref_used = rtri.xyz, [o.image for o in rused]
-        qobs = [o for o in qobs_all if o.image in qposes]
-        if len(qobs) == 1:
-            X = depth_from_model(qrec, qobs[0].image, np.array([qobs[0].x, qobs[0].y]))
-            if X is None:
-                st.reason = "query: one click only and too few block points near it"
-                continue
-            st.query_xyz, st.query_used, st.query_from_depth = X, [qobs[0].image], True
+        st.ref_xyz, st.ref_used = X, used
+        X, used, dropped, why, how = _place(qobs, qposes, qcams, qrec, settings.tie_max_px)
+        st.dropped_clicks += dropped
+        st.mistake = st.mistake or bool(dropped) or "disagree" in why
+        if X is None:
+            st.reason = f"query: {why}"
             continue
-        qtri, _, qused, qdrop = _triangulate(qobs_all, qposes, qcams, settings.tie_max_px)
-        st.dropped_clicks += qdrop
-        st.mistake = st.mistake or bool(qdrop) or "disagree" in qtri.reason
-        if qtri.xyz is None:
-            st.reason = f"query: {qtri.reason or 'no clicks in registered query photos'} ({len(qobs)} clicks in registered photos)"
-            continue
-        st.query_xyz, st.query_used = qtri.xyz, [o.image for o in qused]
+        st.query_xyz, st.query_used, st.query_from_depth = X, used, how == "depth"
     usable = [s for s in status if s.ref_xyz is not None and s.query_xyz is not None]
     if len(usable) < settings.min_tiepoints:
-        raise RegistrationError(f"only {len(usable)} usable tie points ({len(status)} clicked in this sequence; "
-                                f"{settings.min_tiepoints} or more non-collinear ones needed)")
+        raise RegistrationError(f"only {len(usable)} usable tie points ({len(status)} clicked in this sequence's "
+                                f"registered photos; {settings.min_tiepoints} or more non-collinear ones needed)")
     fit = robust_sim3(np.array([s.query_xyz for s in usable]), np.array([s.ref_xyz for s in usable]),
                       settings.sim3_max_error_m, what="tie points")
     for s, r, ok in zip(usable, fit.residuals_m, fit.inliers):
@@ -162,7 +177,6 @@ class _Builder:
         self.next_cam = 1
         self.next_img = 1
         self.image_ids: dict[str, int] = {}
-        self.extra: dict[str, list] = {}   # name -> [(xy, key)] clicks appended after block keypoints
 
     def add_camera(self, cam: pycolmap.Camera) -> int:
         c = pycolmap.Camera(model=cam.model, width=cam.width, height=cam.height, params=list(cam.params),
@@ -181,27 +195,48 @@ class _Builder:
         return iid
 
 
-def build_joint(ref_rec, ref_names_needed: set[str], blocks: dict[str, pycolmap.Reconstruction],
-                ties: dict[str, dict[str, tuple[float, float]]], tie_xyz: dict[str, np.ndarray]):
-    """``ties``: tie id -> {image: (x, y)} of the observations to use. Returns (builder, ref_ids,
-    tie point3D ids {tie id: point3D_id}, tie observations {tie id: [(image_id, idx)]})."""
+@dataclass
+class Joint:
+    rec: pycolmap.Reconstruction
+    image_ids: dict[str, int]
+    ref_ids: set[int]
+    slot: dict[tuple[str, str], int]        # (tie id, image) -> point2D index of that click
+    clicks: dict[str, dict[str, tuple]]     # tie id -> {image: (x, y)} for every click on a joint image
+    tie_pids: dict[str, int] = field(default_factory=dict)
+
+    def poses_cams(self):
+        return model_poses(self.rec), model_cameras(self.rec)
+
+    def set_ties(self, ties: dict[str, tuple[np.ndarray, list[str]]]) -> None:
+        """Replace all tie points by ``ties``: id -> (xyz, images whose click is used)."""
+        for pid in self.tie_pids.values():
+            if pid in self.rec.points3D:
+                self.rec.delete_point3D(pid)
+        self.tie_pids = {}
+        for tid, (xyz, images) in ties.items():
+            els = [pycolmap.TrackElement(self.image_ids[n], self.slot[(tid, n)]) for n in images]
+            self.tie_pids[tid] = self.rec.add_point3D(np.asarray(xyz, float), pycolmap.Track(els))
+
+
+def build_joint(ref_rec, blocks: dict[str, pycolmap.Reconstruction], clicks: dict[str, dict[str, tuple]]) -> Joint:
+    """Reference photos clicked in ``clicks`` (fixed later) + every registered query block with its
+    points; each click becomes an extra keypoint of its photo."""
     b = _Builder()
-    clicks_per_image: dict[str, list] = {}
-    for tid, obs in ties.items():
+    per_image: dict[str, list] = {}
+    for tid, obs in clicks.items():
         for name, xy in obs.items():
-            clicks_per_image.setdefault(name, []).append((tid, xy))
-    ref_ids = set()
-    cam_map = {}
-    for name in sorted(ref_names_needed):
+            per_image.setdefault(name, []).append((tid, xy))
+    slot, ref_ids, cam_map = {}, set(), {}
+    for name in sorted(n for n in per_image if n.startswith("reference/")):
         im = ref_rec.find_image_with_name(name)
+        if im is None or not im.has_pose:
+            continue
         if im.camera_id not in cam_map:
             cam_map[im.camera_id] = b.add_camera(ref_rec.cameras[im.camera_id])
-        kp = np.array([xy for _, xy in clicks_per_image.get(name, [])]).reshape(-1, 2)
-        ref_ids.add(b.add_image(name, cam_map[im.camera_id], im.cam_from_world(), kp))
-    tie_slot: dict[tuple[str, str], int] = {}
-    for name in ref_names_needed:
-        for k, (tid, _) in enumerate(clicks_per_image.get(name, [])):
-            tie_slot[(name, tid)] = k
+        for k, (tid, _) in enumerate(per_image[name]):
+            slot[(tid, name)] = k
+        ref_ids.add(b.add_image(name, cam_map[im.camera_id], im.cam_from_world(),
+                                np.array([xy for _, xy in per_image[name]])))
     for seq, rec in blocks.items():
         cam_map, id_map = {}, {}
         for iid, im in rec.images.items():
@@ -210,24 +245,43 @@ def build_joint(ref_rec, ref_names_needed: set[str], blocks: dict[str, pycolmap.
             if im.camera_id not in cam_map:
                 cam_map[im.camera_id] = b.add_camera(rec.cameras[im.camera_id])
             kp = np.array([p.xy for p in im.points2D]).reshape(-1, 2)
-            n0 = len(kp)
-            extra = clicks_per_image.get(im.name, [])
+            extra = per_image.get(im.name, [])
+            for k, (tid, _) in enumerate(extra):
+                slot[(tid, im.name)] = len(kp) + k
             if extra:
                 kp = np.vstack([kp, np.array([xy for _, xy in extra])])
-            for k, (tid, _) in enumerate(extra):
-                tie_slot[(im.name, tid)] = n0 + k
             id_map[iid] = b.add_image(im.name, cam_map[im.camera_id], im.cam_from_world(), kp)
         for p in rec.points3D.values():
             els = [pycolmap.TrackElement(id_map[e.image_id], e.point2D_idx) for e in p.track.elements
                    if e.image_id in id_map]
             if len(els) >= 2:
                 b.rec.add_point3D(p.xyz, pycolmap.Track(els), p.color)
-    tie_pids, tie_obs = {}, {}
-    for tid, obs in ties.items():
-        els = [(b.image_ids[n], tie_slot[(n, tid)]) for n in obs if n in b.image_ids]
-        tie_obs[tid] = els
-        tie_pids[tid] = b.rec.add_point3D(tie_xyz[tid], pycolmap.Track([pycolmap.TrackElement(i, k) for i, k in els]))
-    return b, ref_ids, tie_pids, tie_obs
+    clicks = {tid: {n: xy for n, xy in obs.items() if n in b.image_ids} for tid, obs in clicks.items()}
+    return Joint(b.rec, b.image_ids, ref_ids, slot, clicks)
+
+
+def retriangulate_ties(j: Joint, max_px: float) -> tuple[dict, dict]:
+    """Every tie point from all its clicks with the joint model's current poses. Returns
+    (ties to use: id -> (xyz, images), dropped clicks: id -> [{image, residual_px}])."""
+    poses, cams = j.poses_cams()
+    use, dropped = {}, {}
+    for tid, obs in j.clicks.items():
+        names = [n for n in obs if n in poses]
+        if len(names) < 2 or not any(n.startswith("queries/") for n in names):
+            continue
+        uv = np.array([obs[n] for n in names])
+        tri = triangulate_clicks([cams[n] for n in names], [poses[n] for n in names], uv, max_px=max_px,
+                                 min_angle_deg=0.5)
+        bad = [{"image": n, "residual_px": float(r)} for n, u, r in zip(names, tri.used, tri.residuals_px) if not u]
+        if tri.xyz is None:
+            dropped[tid] = [{"image": n, "residual_px": float(r)} for n, r in zip(names, tri.residuals_px)]
+            continue
+        if bad:
+            dropped[tid] = bad
+        kept = [n for n, u in zip(names, tri.used) if u]
+        if any(n.startswith("queries/") for n in kept) and any(n.startswith("reference/") for n in kept):
+            use[tid] = (tri.xyz, kept)
+    return use, dropped
 
 
 def _bundle_adjust(rec, ref_ids, settings: RegisterSettings, loss: str, covariance: bool = False):
@@ -301,7 +355,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     t0 = time.time()
     tiepoints = read_tiepoints(P.tiepoints)
     ref_rec = pycolmap.Reconstruction(ref_dir)
-    ref_poses, ref_cams = model_poses(ref_rec), model_cameras(ref_rec)
+    ref_cache = {"poses": model_poses(ref_rec), "cams": model_cameras(ref_rec)}
     seq_report, blocks, statuses = {}, {}, {}
     for seq, d in seq_dirs.items():
         if not d.is_dir():
@@ -309,7 +363,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             continue
         qrec = pycolmap.Reconstruction(d)
         try:
-            sim, st = register_sequence(seq, qrec, ref_poses, ref_cams, tiepoints, settings)
+            sim, st = register_sequence(seq, qrec, ref_rec, tiepoints, settings, ref_cache)
         except RegistrationError as e:
             seq_report[seq] = {"status": "error", "error": str(e)}
             log.error("sequence %s not registered: %s", seq, e)
@@ -317,100 +371,119 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         qrec.transform(sim)
         blocks[seq], statuses[seq] = qrec, st
         seq_report[seq] = {"status": "registered", "scale": float(sim.scale),
-                           "n_tiepoints": len(st), "n_inliers": sum(s.inlier for s in st),
+                           "n_tiepoints": len(st), "n_sim3_inliers": sum(s.inlier for s in st),
                            "sim3_rmse_m": float(np.sqrt(np.mean([s.sim3_residual_m ** 2 for s in st if s.inlier])))}
     t_sim = time.time()
-    # one 3D point per tie point with every observation kept by the per-sequence steps
-    ties: dict[str, dict[str, tuple]] = {}
-    tie_xyz = {}
-    obs_xy = {(tp.id, o.image): (o.x, o.y) for tp in tiepoints for o in tp.observations}
-    for seq, st in statuses.items():
-        for s in st:
-            if not s.inlier:
-                continue
-            d = ties.setdefault(s.id, {})
-            for n in s.ref_used + s.query_used:
-                d[n] = obs_xy[(s.id, n)]
-            tie_xyz[s.id] = s.ref_xyz
-    result = {"sequences": seq_report, "n_registered": 0, "n_images": 0, "images": {}}
-    if blocks:
-        ref_needed = {n for d in ties.values() for n in d if n.startswith("reference/")}
-        b, ref_ids, tie_pids, tie_obs = build_joint(ref_rec, ref_needed, blocks, ties, tie_xyz)
-        rec = b.rec
-        _bundle_adjust(rec, ref_ids, settings, "CAUCHY")
-        # drop tie observations that still disagree (click mistakes the triangulation could not see)
-        rejected = []
-        for tid, pid in tie_pids.items():
-            p = rec.points3D[pid]
-            for e in list(p.track.elements):
-                im = rec.images[e.image_id]
-                proj = im.project_point(p.xyz)
-                r = np.inf if proj is None else np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy)
-                if r > settings.ba_max_tie_px:
-                    rejected.append({"tie": tid, "image": im.name, "residual_px": float(r)})
-        for rj in rejected:
-            pid = tie_pids[rj["tie"]]
-            iid = b.image_ids[rj["image"]]
-            if pid in rec.points3D and rec.points3D[pid].track.length() > 2:
-                idx = next(e.point2D_idx for e in rec.points3D[pid].track.elements if e.image_id == iid)
-                rec.delete_observation(iid, idx)
-        summary, cov = _bundle_adjust(rec, ref_ids, settings, "TRIVIAL", covariance=True)
-        t_ba = time.time()
-        qids = [i for i in rec.reg_image_ids() if i not in ref_ids]
-        tie_set = set(tie_pids.values())
-        sfm_pids = [p for p in rec.points3D if p not in tie_set]
-        sfm_err = point_reprojection_errors(rec, sfm_pids)
-        tie_err = point_reprojection_errors(rec, [p for p in tie_pids.values() if p in rec.points3D])
-        poses, cams, covs = {}, {}, {}
-        per_image = {}
-        for iid in qids:
-            im = rec.images[iid]
-            c = None
-            if cov is not None:
-                try:
-                    c = np.asarray(cov.get_cam_cov_from_world(iid))
-                except Exception:  # noqa: BLE001 - not every image gets one
-                    c = None
-            pose = Pose.from_pycolmap(im.cam_from_world())
-            poses[im.name] = pose
-            cams[im.name] = Camera.from_pycolmap(rec.cameras[im.camera_id])
-            info = {"sequence": im.name.split("/")[1], "n_points": int(im.num_points3D)}
-            if c is not None and c.shape == (6, 6) and np.all(np.isfinite(c)):
-                covs[im.name] = c
-                Cc = pose.R.T @ c[3:, 3:] @ pose.R
-                info["sigma_pos_m"] = float(np.sqrt(np.trace(Cc)))
-                info["sigma_rot_deg"] = float(np.degrees(np.sqrt(np.trace(c[:3, :3]))))
-            per_image[im.name] = info
-        n_all = _count_query_images(P, seq_dirs)
-        bad = {}
-        for seq, st in statuses.items():
-            for s in st:
-                if s.mistake or "disagree" in s.reason:
-                    bad[s.id] = {"sequence": seq, "reason": s.reason or "some clicks dropped as mistakes",
-                                 "dropped_clicks": s.dropped_clicks}
-        for rj in rejected:
-            bad.setdefault(rj["tie"], {"reason": "observation rejected by the joint BA", "dropped_clicks": []})
-            bad[rj["tie"]]["dropped_clicks"].append({"image": rj["image"], "residual_px": rj["residual_px"]})
-        result.update({
-            "n_registered": len(poses), "n_images": n_all, "images": per_image,
-            "median_reproj_px": float(np.median(sfm_err)) if len(sfm_err) else None,
-            "mean_reproj_px": float(np.mean(sfm_err)) if len(sfm_err) else None,
-            "median_tiepoint_reproj_px": float(np.median(tie_err)) if len(tie_err) else None,
-            "n_tiepoints_in_ba": len(tie_pids), "ba_rejected_observations": rejected,
-            "bad_tiepoints": bad,
-            "tiepoints": {seq: [s.as_dict() for s in st] for seq, st in statuses.items()},
-            "seconds": {"sim3": t_sim - t0, "joint_ba": t_ba - t_sim}})
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "model").mkdir(exist_ok=True)
-        rec.write(out / "model")
-        write_poses(out / "poses.txt", poses, header="pseudo-GT poses of the query photos (gtkit register)")
-        write_intrinsics(out / "intrinsics.txt", cams)
-        if covs:
-            write_covariances(out / "covariances.txt", covs)
-    else:
-        result["n_images"] = _count_query_images(P, seq_dirs)
+    result = {"sequences": seq_report, "n_registered": 0, "n_images": _count_query_images(P, seq_dirs), "images": {}}
+    out.mkdir(parents=True, exist_ok=True)
+    if not blocks:
         for f in ("poses.txt", "intrinsics.txt", "covariances.txt"):
             (out / f).unlink(missing_ok=True)
+        write_json(out / "registration.json", result)
+        mark_stage_done(out, settings, inputs, n_registered=0)
+        return result
+    # every click of every tie point that touches a registered sequence
+    prefixes = tuple(f"queries/{s}/" for s in blocks)
+    clicks = {tp.id: {o.image: (o.x, o.y) for o in tp.observations}
+              for tp in tiepoints if any(o.image.startswith(prefixes) for o in tp.observations)}
+    j = build_joint(ref_rec, blocks, clicks)
+    # pass a: Sim(3) inliers, robust loss
+    first = {}
+    for st in statuses.values():
+        for s in st:
+            if s.inlier:
+                imgs = [n for n in s.ref_used + s.query_used if n in j.image_ids]
+                first[s.id] = (s.ref_xyz, imgs)
+    j.set_ties(first)
+    _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
+    # pass b: every tie point re-triangulated from all its clicks with the refined poses
+    use, dropped = retriangulate_ties(j, settings.ba_max_tie_px)
+    j.set_ties(use)
+    _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
+    # pass c: drop what still disagrees, then the final least-squares BA (+ covariance)
+    for tid, pid in list(j.tie_pids.items()):
+        p = j.rec.points3D[pid]
+        for e in list(p.track.elements):
+            im = j.rec.images[e.image_id]
+            proj = im.project_point(p.xyz)
+            r = np.inf if proj is None else float(np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy))
+            if r > settings.ba_max_tie_px:
+                dropped.setdefault(tid, []).append({"image": im.name, "residual_px": r})
+                if j.rec.points3D[pid].track.length() > 2:
+                    j.rec.delete_observation(e.image_id, e.point2D_idx)
+                else:
+                    j.rec.delete_point3D(pid)
+                    del j.tie_pids[tid]
+                    break
+    summary, cov = _bundle_adjust(j.rec, j.ref_ids, settings, "TRIVIAL", covariance=True)
+    t_ba = time.time()
+    rec = j.rec
+    qids = [i for i in rec.reg_image_ids() if i not in j.ref_ids]
+    tie_set = set(j.tie_pids.values())
+    sfm_err = point_reprojection_errors(rec, [p for p in rec.points3D if p not in tie_set])
+    poses, cams, covs, per_image = {}, {}, {}, {}
+    tie_count: dict[str, int] = {}
+    for tid, pid in j.tie_pids.items():
+        for e in rec.points3D[pid].track.elements:
+            n = rec.images[e.image_id].name
+            tie_count[n] = tie_count.get(n, 0) + 1
+    for iid in qids:
+        im = rec.images[iid]
+        pose = Pose.from_pycolmap(im.cam_from_world())
+        poses[im.name] = pose
+        cams[im.name] = Camera.from_pycolmap(rec.cameras[im.camera_id])
+        info = {"sequence": im.name.split("/")[1], "n_points": int(im.num_points3D),
+                "n_tiepoints": tie_count.get(im.name, 0)}
+        c = None
+        if cov is not None:
+            try:
+                c = np.asarray(cov.get_cam_cov_from_world(iid))
+            except Exception:  # noqa: BLE001 - not every image gets one
+                c = None
+        if c is not None and c.shape == (6, 6) and np.all(np.isfinite(c)):
+            covs[im.name] = c
+            Cc = pose.R.T @ c[3:, 3:] @ pose.R
+            info["sigma_pos_m"] = float(np.sqrt(np.trace(Cc)))
+            info["sigma_rot_deg"] = float(np.degrees(np.sqrt(np.trace(c[:3, :3]))))
+        per_image[im.name] = info
+    # per tie point: final residuals, and the list of bad ones (gross click mistakes)
+    tie_table, bad = {}, {}
+    status_by_id = {s.id: (seq, s) for seq, st in statuses.items() for s in st}
+    for tid in clicks:
+        seq, s = status_by_id.get(tid, (None, None))
+        row = {"sequence": seq, "sim3_inlier": bool(s and s.inlier), "sim3_residual_m": s.sim3_residual_m if s else None,
+               "in_final_ba": tid in j.tie_pids, "note": s.reason if s else "not usable for the Sim(3)"}
+        if tid in j.tie_pids:
+            p = rec.points3D[j.tie_pids[tid]]
+            row["reproj_px"] = {rec.images[e.image_id].name: float(np.linalg.norm(
+                np.asarray(rec.images[e.image_id].project_point(p.xyz)) - rec.images[e.image_id].points2D[e.point2D_idx].xy))
+                for e in p.track.elements}
+        drops = (s.dropped_clicks if s else []) + dropped.get(tid, [])
+        if drops or (s and s.mistake and tid not in j.tie_pids):
+            seen = {}
+            for dd in drops:
+                seen.setdefault(dd["image"], dd)
+            bad[tid] = {"sequence": seq, "reason": ("clicks dropped as mistakes" if drops else s.reason),
+                        "dropped_clicks": [{"image": v["image"], "residual_px": float(v["residual_px"])} for v in seen.values()],
+                        "in_final_ba": tid in j.tie_pids}
+        tie_table[tid] = row
+    tie_err = [r for row in tie_table.values() for r in row.get("reproj_px", {}).values()]
+    for seq in blocks:
+        seq_report[seq]["n_tiepoints_final_ba"] = sum(1 for r in tie_table.values() if r["sequence"] == seq and r["in_final_ba"])
+    result.update({
+        "n_registered": len(poses), "images": per_image,
+        "median_reproj_px": float(np.median(sfm_err)) if len(sfm_err) else None,
+        "mean_reproj_px": float(np.mean(sfm_err)) if len(sfm_err) else None,
+        "median_tiepoint_reproj_px": float(np.median(tie_err)) if tie_err else None,
+        "n_tiepoints_in_ba": len(j.tie_pids), "bad_tiepoints": bad, "tiepoints": tie_table,
+        "ba_final_cost": float(summary.final_cost) if hasattr(summary, "final_cost") else None,
+        "seconds": {"sim3": t_sim - t0, "joint_ba": t_ba - t_sim}})
+    (out / "model").mkdir(exist_ok=True)
+    rec.write(out / "model")
+    write_poses(out / "poses.txt", poses, header="pseudo-GT poses of the query photos (gtkit register)")
+    write_intrinsics(out / "intrinsics.txt", cams)
+    if covs:
+        write_covariances(out / "covariances.txt", covs)
     write_json(out / "registration.json", result)
     mark_stage_done(out, settings, inputs, n_registered=result["n_registered"])
     return result

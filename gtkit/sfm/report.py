@@ -147,7 +147,7 @@ def _markdown(rep: dict, folder: Path) -> str:
     L += ["", "## Sequences", ""]
     for seq, s in (rep.get("sequences") or {}).items():
         L.append(f"- **{seq}**: " + (f"ERROR: {s['error']}" if s["status"] == "error" else
-                                     f"registered; {s['n_inliers']}/{s['n_tiepoints']} tie points inliers, "
+                                     f"registered; {s['n_sim3_inliers']}/{s['n_tiepoints']} tie points Sim(3) inliers, {s.get('n_tiepoints_final_ba')} in the final BA, "
                                      f"Sim(3) RMSE {s['sim3_rmse_m']:.3f} m"))
     for seq, b in (rep.get("query_blocks") or {}).items():
         for n, why in (b.get("unregistered") or {}).items():
