@@ -37,6 +37,7 @@ from .pnp import PnPSettings
 
 log = logging.getLogger(__name__)
 STEPS = ("features", "retrieval", "matching", "lifting", "pnp")
+MIN_QUERY_KEYPOINTS = 20
 
 
 @dataclass(frozen=True)
@@ -115,7 +116,12 @@ def _settings_from_dict(d: dict) -> LocalizeSettings:
 # --- offline: database features and global descriptors --------------------------------------
 
 def _db_cache(project: Project, s: LocalizeSettings) -> Path:
-    return project.paths.stage("localize_db") / f"{s.features.extractor}-{settings_key(s.features)[:8]}"
+    """Keyed by the feature settings *and* the database's render settings, so a re-rendered
+    database never meets features of its predecessor."""
+    rec = project.paths.stage("render_db") / "settings.json"
+    db_key = json.loads(rec.read_text()) if rec.is_file() else {}
+    key = settings_key({"features": settings_dict(s.features), "render_db": db_key})
+    return project.paths.stage("localize_db") / f"{s.features.extractor}-{key[:8]}"
 
 
 def _extractor(fs: FeatureSettings, db: bool):
@@ -239,13 +245,23 @@ def _context(ctx: dict):
 def localize_query(task) -> dict:
     """Localize one query; never raises for a bad query (the reason goes into the result)."""
     ctx, name = task
+    t0 = time.perf_counter()
+    W = _context(ctx)  # once per worker process: database, descriptors, extractor, matcher
     t_start = time.perf_counter()
     try:
-        out = _localize_query(_context(ctx), name)
+        out = _localize_query(W, name)
     except GtkitError as e:
         out = {"name": name, "ok": False, "reason": str(e), "seconds": {}}
     out["seconds_total"] = time.perf_counter() - t_start
+    out["seconds_setup"] = t_start - t0
     return out
+
+
+def release_worker_state() -> None:
+    """Close what :func:`_context` holds open in this process (the feature file)."""
+    if "h5" in _W:
+        _W.pop("h5").close()
+    _W.pop("ctx_key", None)
 
 
 def _localize_query(W: dict, name: str) -> dict:
@@ -284,6 +300,10 @@ def _localize_query(W: dict, name: str) -> dict:
     fq = W["extractor"].extract(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
     sec["features"] = time.perf_counter() - t
     rec["n_keypoints"] = len(fq)
+    if len(fq) < MIN_QUERY_KEYPOINTS:
+        rec["reason"] = (f"too few keypoints in the query ({len(fq)} < {MIN_QUERY_KEYPOINTS}): "
+                         "a textureless view (water, haze, blur?)")
+        return rec
     # retrieval
     t = time.perf_counter()
     keep = np.ones(len(db.views), bool)
@@ -385,6 +405,7 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
         results = run_map(ex, localize_query, [(ctx, n) for n in names], progress="localize")
     finally:
         ex.close()
+        release_worker_state()
     wall = time.perf_counter() - t0
     poses = {r["name"]: Pose.from_qt(r["q"], r["t"]) for r in results if r["ok"]}
     out.mkdir(parents=True, exist_ok=True)
