@@ -6,6 +6,8 @@ Writes a synthetic 10 x 10-tile model (each 50 m tile has its own texture, like 
 delivery), then measures in separate processes (so peak memory is each mode's own):
   stream   TileStreamer with a memory budget: only the tiles in each view's frustum are uploaded
   all      the whole model loaded and uploaded at once, then the same views
+  dsm-*    a 0.25 m top-down raster (DSM heights + ortho colours) of the whole site in 512 px windows,
+           streamed under the budget or with the whole model uploaded ("view ms" = the whole raster)
 Printed per mode: tiles drawn / loaded per view, resident tiles, resident memory (VmRSS) after
 the views, peak memory (VmHWM), time per view (load + render).
 """
@@ -71,7 +73,21 @@ def measure(model_dir: str, mode: str, n_side: int, tile_m: float, budget: float
     base = vm("VmRSS")
     per_view, drawn, loaded = [], [], []
     t0 = time.perf_counter()
-    if mode == "stream":
+    if mode.startswith("dsm"):  # a top-down raster of the whole site, 0.25 m, in 512 px windows
+        lo, hi = model.bounds()
+        t = time.perf_counter()
+        if mode == "dsm-stream":
+            s = TileStreamer(model, budget_mb=budget)
+            s.render_ortho(lo[0], lo[1], hi[0], hi[1], 0.25, tile=512)
+            drawn, loaded, resident = [s.stats.tiles_drawn], [s.stats.tiles_loaded], len(s.resident)
+        else:
+            r = Renderer()
+            r.add_mesh(model.load_all(), origin=model.bounds().mean(0))
+            r.render_ortho(lo[0], lo[1], hi[0], hi[1], 0.25, tile=512)
+            drawn = loaded = [len(model)]
+            resident = len(model)
+        setup, per_view = 0.0, [time.perf_counter() - t]
+    elif mode == "stream":
         s = TileStreamer(model, budget_mb=budget)
         setup = time.perf_counter() - t0
         for pose in views(n_side, tile_m):
@@ -126,14 +142,14 @@ def main():
         size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file()) / 2**20
         print(f"model: {a.tiles_side ** 2} tiles, {n_tri} triangles, {a.tiles_side ** 2} textures "
               f"{a.tex}x{a.tex}, {size:.0f} MiB on disk, written in {time.perf_counter() - t:.1f} s")
-        print(f"{'mode':7s} {'drawn/view':>10s} {'loaded/view':>11s} {'resident':>8s} {'RSS+ MiB':>9s} "
+        print(f"{'mode':10s} {'drawn/view':>10s} {'loaded/view':>11s} {'resident':>8s} {'RSS+ MiB':>9s} "
               f"{'peak MiB':>9s} {'setup s':>8s} {'view ms (median/max)':>21s}")
-        for mode in ("stream", "all"):
+        for mode in ("stream", "all", "dsm-stream", "dsm-all"):
             res = subprocess.run([sys.executable, __file__, "--measure", str(out), mode,
                                   "--tiles-side", str(a.tiles_side), "--tile-m", str(a.tile_m),
                                   "--budget", str(a.budget)], capture_output=True, text=True, check=True)
             r = json.loads(res.stdout.strip().splitlines()[-1])
-            print(f"{r['mode']:7s} {r['drawn_mean']:6.1f}/{r['drawn_max']:<3d} {r['loaded_per_view']:11.1f} "
+            print(f"{r['mode']:10s} {r['drawn_mean']:6.1f}/{r['drawn_max']:<3d} {r['loaded_per_view']:11.1f} "
                   f"{r['resident']:8d} {r['rss_mb']:9.0f} {r['peak_mb']:9.0f} {r['setup_s']:8.2f} "
                   f"{r['view_ms_median']:10.0f}/{r['view_ms_max']:<10.0f}")
         print(f"(budget {a.budget:.0f} MiB; RSS+ = resident memory after the views minus after imports, GL "
