@@ -134,14 +134,15 @@ def write_mesh(path: Path, mesh: Mesh, fmt: str) -> Path:
 def vertex_colors(part: MeshPart) -> np.ndarray:
     """(N, 3) uint8 per-vertex colours: the part's own, or its texture sampled (bilinear) at the uv."""
     if part.texture is not None and part.uv is not None:
-        import cv2
-
-        th, tw = part.texture.shape[:2]
-        u = (part.uv[:, 0] % 1.0) * tw - 0.5
-        v = (1.0 - part.uv[:, 1] % 1.0) * th - 0.5  # uv's v is up, image row 0 is the top
-        c = cv2.remap(part.texture, u.astype(np.float32)[None], v.astype(np.float32)[None], cv2.INTER_LINEAR,
-                      borderMode=cv2.BORDER_REFLECT)
-        return c[0].astype(np.uint8)
+        tex = part.texture.astype(np.float32)
+        th, tw = tex.shape[:2]
+        u = np.clip((part.uv[:, 0] % 1.0) * tw - 0.5, 0, tw - 1)
+        v = np.clip((1.0 - part.uv[:, 1] % 1.0) * th - 0.5, 0, th - 1)  # uv's v is up, row 0 is the top
+        c0, r0 = np.minimum(u.astype(np.int64), tw - 2 if tw > 1 else 0), np.minimum(v.astype(np.int64), th - 2 if th > 1 else 0)
+        c1, r1 = np.minimum(c0 + 1, tw - 1), np.minimum(r0 + 1, th - 1)
+        fu, fv = (u - c0)[:, None], (v - r0)[:, None]
+        c = ((1 - fv) * ((1 - fu) * tex[r0, c0] + fu * tex[r0, c1]) + fv * ((1 - fu) * tex[r1, c0] + fu * tex[r1, c1]))
+        return np.clip(np.rint(c), 0, 255).astype(np.uint8)
     if part.colors is not None:
         return part.colors.astype(np.uint8)
     return np.full((len(part.vertices), 3), 180, np.uint8)
