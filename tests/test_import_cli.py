@@ -54,6 +54,19 @@ def test_import_tiled_model_and_blocks_exchange(project, site_mesh, tmp_path, ca
 
     assert pycolmap.Reconstruction(rec["colmap"]).num_reg_images() == 5
     assert "imported 5 poses" in capsys.readouterr().out
+    # the same block zipped (ContextCapture's .xmlz), COLMAP export as text
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "at.xmlz", "w") as z:
+        z.write(xml, "at.xml")
+    assert main(["import", "poses", str(project.paths.root), str(tmp_path / "at.xmlz"), "--text"]) == 0
+    rec = _imports(project)["poses"]
+    assert rec["n_images"] == 5 and (project.paths.stage("import") / "colmap" / "images.txt").is_file()
+    # and back in from the COLMAP model gtkit wrote
+    assert main(["import", "poses", str(project.paths.root), rec["colmap"]]) == 0
+    back = read_poses(_imports(project)["poses"]["poses"])
+    assert _imports(project)["poses"]["format"] == "colmap"
+    assert max(max(poses[k].error_to(back[k])) for k in poses) < 1e-6
 
 
 def test_import_odm_single_mesh_and_points(project, site_mesh, tmp_path):
