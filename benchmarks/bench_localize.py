@@ -30,24 +30,20 @@ def peak_mib() -> float:
 
 
 def bench_render(project: Project, n: int) -> dict:
-    from gtkit.io.mesh import load_model
-    from gtkit.render.renderer import Renderer
-
     s = database.RenderDbSettings()
     views, _info = database.plan_views(project, s)
     step = max(1, len(views) // n)
     views = views[::step][:n]
     t0 = time.perf_counter()
-    r = Renderer(load_model(project.paths.root / s.model, project.frame))
+    r = database.open_model(project.paths.root, s.model, project.frame, s.tile_budget_mb)
     t_load = time.perf_counter() - t0
     cam = database.db_camera(s)
     t0 = time.perf_counter()
     for v in views:
-        r.render(cam, v.pose())
+        database.render_view(r, cam, v, s.parts)
     dt = time.perf_counter() - t0
     r.release()
-    return {"model_load_s": t_load, "views": len(views), "views_per_s": len(views) / dt,
-            "triangles": r.n_triangles if hasattr(r, "n_triangles") else None}
+    return {"model_load_s": t_load, "views": len(views), "views_per_s": len(views) / dt}
 
 
 def main(argv=None) -> int:

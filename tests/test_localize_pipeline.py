@@ -140,3 +140,31 @@ def test_ablation_without_rotation_prior_via_pipeline(site, capsys):
     assert rep["recall_1m1deg"] >= 6 / 8
     assert OFF60 not in {f["name"]: 1 for f in rep["failures"]} or \
         "no database view within" not in {f["name"]: f["reason"] for f in rep["failures"]}[OFF60]
+
+
+def test_tiled_model_renders_the_same_database_views(site):
+    """A tiled copy of the model (issue 9's format) streams only the tiles a view sees and gives
+    the same depth as the whole mesh."""
+    from gtkit.io.mesh import load_model
+    from gtkit.io.tiled import write_tiled
+    from gtkit.localize.grid import View
+    from gtkit.project import Project
+
+    proj = Project.load(site)
+    mesh = load_model(site / "model" / "reference.obj", proj.frame)
+    write_tiled(mesh, site / "model" / "tiles", proj.frame.crs_spec, proj.frame.origin, tile_size=100.0)
+    out = site / "work" / "render_db"
+    fields = ("name", "height", "paper_pitch", "yaw", "pitch", "roll")
+    kept = [v for v in json.loads((out / "views.json").read_text())["views"] if v["kept"]]
+    views = [View(**{k: v[k] for k in fields}, center=tuple(v["center"])) for v in kept[::12][:5]]
+    r = database.open_model(site, "model/tiles", proj.frame, tile_budget_mb=64)
+    try:
+        for v in views:
+            d = database.render_view(r, database.db_camera(_db_settings()), v).depth
+            ref = np.load(out / "depth" / f"{v.name}.npz")["depth"]
+            both = np.isfinite(d) & np.isfinite(ref)
+            assert both.mean() > 0.49 and (np.isfinite(d) == np.isfinite(ref)).mean() > 0.999
+            assert np.abs(d[both] - ref[both]).max() < 0.02
+            assert len(r.resident) < 12                      # only part of the 15 tiles is on the GPU
+    finally:
+        r.release()

@@ -31,16 +31,15 @@ def _report_paths(project: Project, ablation: str) -> tuple[Path, Path]:
 def retrieval_overlaps(project: Project, queries: list[dict], truth: dict, intrinsics: dict,
                        max_width: int = 320) -> dict[tuple[str, str], float]:
     """Overlap of each query (true pose) with each of its retrieved database views."""
-    from ..io.mesh import load_model
-    from ..localize.database import load_database
-    from ..render.renderer import Renderer
+    from ..localize.database import load_database, open_model
 
     pairs = [(q["name"], v) for q in queries for v, _s in q.get("retrieved", []) if q["name"] in truth]
     if not pairs:
         return {}
     db = load_database(project)
     views = {v.name: v for v in db.views}
-    r = Renderer(load_model(project.paths.model / "reference.obj", project.frame))
+    rec = json.loads((project.paths.stage("render_db") / "stage.json").read_text())
+    r = open_model(project.paths.root, rec["settings"].get("model", "model/reference.obj"), project.frame)
     out = {}
     try:
         for q in queries:

@@ -53,7 +53,9 @@ class RenderDbSettings:
     min_valid_fraction: float = 0.5                   # drop views that see less model than this
     jpeg_quality: int = 95
     parts: str = "all"                                # part selector (which model parts a view draws)
-    model: str = "model/reference.obj"                # relative to the project
+    model: str = "model/reference.obj"                # relative to the project; a folder (or its
+                                                      # metadata.xml) = a tiled model, streamed per view
+    tile_budget_mb: float = 512.0                     # GPU memory for resident tiles (tiled models)
 
 
 def db_camera(s: RenderDbSettings) -> Camera:
@@ -74,16 +76,51 @@ PART_SELECTORS: dict[str, Callable] = {"all": _all_parts}
 _WORKER: dict = {}
 
 
-def _renderer_for(root: str, model: str):
-    key = (root, model)
-    if _WORKER.get("key") != key:
-        from ..io.mesh import load_model
-        from ..render.renderer import Renderer
+def is_tiled(path: Path) -> bool:
+    return path.is_dir() or path.name == "metadata.xml"
 
+
+def open_model(root: Path, model: str, frame, tile_budget_mb: float = 512.0):
+    """A renderer for the reference model: a :class:`Renderer` holding the whole mesh, or for a
+    tiled model a :class:`gtkit.render.tiles.TileStreamer` that uploads only the tiles each view
+    sees (memory bounded by ``tile_budget_mb``). Both offer ``render``, ``render_ortho``, ``release``."""
+    path = Path(root) / model
+    if is_tiled(path):
+        from ..io.tiled import read_tiled
+        from ..render.tiles import TileStreamer
+
+        return TileStreamer(read_tiled(path, frame), budget_mb=tile_budget_mb)
+    from ..io.mesh import load_model
+    from ..render.renderer import Renderer
+
+    if not path.is_file():
+        raise GtkitError("reference model not found (expected model/reference.obj or a tiled model folder)", path)
+    return Renderer(load_model(path, frame))
+
+
+def model_bounds(r) -> np.ndarray:
+    return r.model.bounds() if hasattr(r, "model") else r.bounds()
+
+
+def render_view(r, camera: Camera, view: View, parts: str = "all"):
+    if hasattr(r, "visible_tiles"):  # a tile streamer chooses the tiles in the view's frustum
+        return r.render(camera, view.pose())
+    return r.render(camera, view.pose(), parts=PART_SELECTORS[parts](r, camera, view))
+
+
+def model_fingerprint(root: Path, model: str) -> str:
+    path = Path(root) / model
+    if is_tiled(path):
+        return file_fingerprint((path if path.is_dir() else path.parent) / "metadata.xml")
+    return file_fingerprint(path)
+
+
+def _renderer_for(root: str, s: "RenderDbSettings"):
+    key = (root, s.model, s.tile_budget_mb)
+    if _WORKER.get("key") != key:
         if "renderer" in _WORKER:
-            _WORKER["renderer"].release()
-        proj = Project.load(root)
-        _WORKER["renderer"] = Renderer(load_model(Path(root) / model, proj.frame))
+            _WORKER.pop("renderer").release()
+        _WORKER["renderer"] = open_model(Path(root), s.model, Project.load(root).frame, s.tile_budget_mb)
         _WORKER["key"] = key
     return _WORKER["renderer"]
 
@@ -95,14 +132,13 @@ def _render_chunk(task) -> list[tuple[str, float]]:
 
     root, settings_d, views = task
     s = RenderDbSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings_d.items()})
-    r = _renderer_for(root, s.model)
+    r = _renderer_for(root, s)
     cam = db_camera(s)
-    select = PART_SELECTORS[s.parts]
     out = Path(root) / "work" / STAGE
     res = []
     for vd in views:
         v = View(**{**vd, "center": tuple(vd["center"])})
-        rr = r.render(cam, v.pose(), parts=select(r, cam, v))
+        rr = render_view(r, cam, v, s.parts)
         frac = float(np.isfinite(rr.depth).mean())
         dpath = out / "depth" / f"{v.name}.npz"
         if frac >= s.min_valid_fraction:
@@ -132,19 +168,12 @@ def _existing_fraction(path: Path) -> float | None:
 
 def plan_views(project: Project, s: RenderDbSettings) -> tuple[list[View], dict]:
     """The viewpoints for this model and settings, plus the extent and ground level used."""
-    from ..io.mesh import load_model
-    from ..render.renderer import Renderer
-
-    model = project.paths.root / s.model
-    if not model.is_file():
-        raise GtkitError("reference model not found (expected model/reference.obj)", model)
     if len(s.heights) != len(s.intervals):
         raise GtkitError(f"render-db needs one interval per height, got heights {s.heights} "
                          f"and intervals {s.intervals}")
-    mesh = load_model(model, project.frame)
-    b = mesh.bounds()
-    r = Renderer(mesh)
+    r = open_model(project.paths.root, s.model, project.frame, s.tile_budget_mb)
     try:
+        b = model_bounds(r)
         g = ground_level(r, b[0, 0], b[0, 1], b[1, 0], b[1, 1])
     finally:
         r.release()
@@ -159,7 +188,7 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
     project = project if isinstance(project, Project) else Project.load(project)
     P = project.paths
     out = P.stage(STAGE)
-    inputs = {"model": file_fingerprint(P.root / settings.model)}
+    inputs = {"model": model_fingerprint(P.root, settings.model)}
     if not force and stage_done(out, settings, inputs):
         log.info("render-db: up to date (%s)", out)
         return out

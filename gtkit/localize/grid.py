@@ -51,7 +51,8 @@ def ground_level(renderer, xmin: float, ymin: float, xmax: float, ymax: float, c
     gsd = max(xmax - xmin, ymax - ymin) / cells
     h = renderer.render_ortho(xmin, ymin, xmax, ymax, gsd, with_rgb=False).depth
     if not np.isfinite(h).any():
-        return float(renderer.bounds()[0, 2])
+        b = renderer.model.bounds() if hasattr(renderer, "model") else renderer.bounds()
+        return float(b[0, 2])
     return float(np.nanpercentile(h, percentile))
 
 
