@@ -13,7 +13,7 @@ from gtkit.export.geotiff import write_geotiff
 from gtkit.export.grid import Grid
 from gtkit.geo import GeoFrame
 from gtkit.io.exif import write_jpeg_with_meta
-from gtkit.io.poses import write_poses
+from gtkit.io.poses import read_poses, write_poses
 from gtkit.pose import Pose
 from gtkit.project import Project
 from gtkit.track.rig import Rig, ZoomSetting
@@ -126,6 +126,18 @@ def test_track_stage_places_targets_and_reports_misses(project):
     assert rep["rig"]["rotation_err_deg"] < 1e-6 and abs(rep["rig"]["focal_err_pct"]) < 1e-9
     assert (P.reports / "tracking.png").stat().st_size > 10_000
     assert main(["evaluate", str(P.root), "--what", "tracking"]) == 0  # the shared evaluate command
+    # a box around the image of a 1.5 m tall car's centre: cast at half its height above the DSM,
+    # the ground point below is the footprint centre (the default foot point); the bottom centre is off
+    name, X = "queries/seq1/0002_Z.jpg", truth["queries/seq1/0002_Z.jpg"]
+    zp = RIG.zoom_pose(read_poses(P.stage("localize") / "poses.txt")["queries/seq1/0002_W.jpg"])
+    c = ZOOM.project(zp.transform((X + [0, 0, 0.75])[None]))[0][0]
+    box = P.root / "boxes.csv"
+    box.write_text(f"image,xmin,ymin,xmax,ymax,label\n{name},{c[0] - 40},{c[1] - 25},{c[0] + 40},{c[1] + 25},car\n")
+    for foot, lo, hi in (("centre", 0.0, 0.05), ("bottom_centre", 0.3, 50.0)):
+        run(proj, TrackSettings(detections=str(box), foot_point=foot, smooth=False))
+        r = _read(P.tracks)[0]
+        est = np.array([float(r["x"]), float(r["y"]), float(r["z"])]) - np.array(proj.frame.origin)
+        assert lo <= np.linalg.norm(est - X) < hi, (foot, est, X)
 
 
 def test_bad_detection_input_names_the_file(tmp_path):
@@ -147,9 +159,9 @@ def test_bad_detection_input_names_the_file(tmp_path):
         {"label": "person", "points": [[10, 20], [30, 80]], "shape_type": "rectangle"},
         {"label": "car", "points": [[5, 6]], "shape_type": "point"}]}))
     d = read_detections(j)
-    assert (d[0].u, d[0].v, d[0].label) == (20.0, 80.0, "person")  # bottom centre
+    assert (d[0].u, d[0].v, d[0].label) == (20.0, 50.0, "person")  # box centre (default)
     assert (d[1].u, d[1].v) == (5.0, 6.0)
-    assert read_detections(j, "centre")[0].v == 50.0
+    assert read_detections(j, "bottom_centre")[0].v == 80.0
 
 
 def test_rts_smoother_reduces_noise_on_a_constant_velocity_track():

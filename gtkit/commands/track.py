@@ -1,6 +1,6 @@
 """``gtkit track``: target positions from zoom-photo detections, the rig and the DSM.
 
-    gtkit track DIR [--poses FILE] [--detections FILE] [--foot-point bottom_centre|centre] [--no-smooth]
+    gtkit track DIR [--poses FILE] [--detections FILE] [--foot-point centre|bottom_centre] [--no-smooth]
     gtkit track calibrate DIR        wide/zoom rig calibration -> work/rig/rig.json
     gtkit track evaluate DIR         against truth/ (sample sites) -> reports/tracking.json + plot
 """
@@ -22,8 +22,9 @@ def register(sub):
     p.add_argument("--covariances", default="", help="6x6 pose covariances (default: covariances.txt "
                    "beside the poses, if present; else default sigmas)")
     p.add_argument("--detections", default="", help="CSV or labelme JSON (default: DIR/detections.csv)")
-    p.add_argument("--foot-point", default="bottom_centre", choices=("bottom_centre", "centre"),
-                   help="which point of a box is the target's ground point (default bottom_centre)")
+    p.add_argument("--foot-point", default="centre", choices=("bottom_centre", "centre"),
+                   help="how a box gives the ground point: its centre, cast at half the target's height "
+                   "above the DSM (default), or its bottom centre")
     p.add_argument("--no-smooth", action="store_true", help="no RTS-smoothed track")
     p.add_argument("--force", action="store_true", help="recompute even if up to date")
     p.set_defaults(func=run)

@@ -97,11 +97,33 @@ def _box_corners(centre, heading, size):
     return np.column_stack([xy + centre[:2], pts[:, 2] + centre[2]])
 
 
+class _TrueWorld:
+    """Line-of-sight tests against the true world mesh (Open3D ray casting)."""
+
+    def __init__(self, ply: Path):
+        import open3d as o3d
+        import trimesh
+
+        m = trimesh.load(str(ply), process=False)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32))
+
+    def hidden(self, eye, point, margin: float = 0.3) -> bool:
+        import open3d as o3d
+
+        d = np.asarray(point, float) - eye
+        dist = float(np.linalg.norm(d))
+        ray = np.concatenate([eye, d / dist]).astype(np.float32)[None]
+        t = float(self.scene.cast_rays(o3d.core.Tensor(ray))["t_hit"].numpy()[0])
+        return np.isfinite(t) and t < dist - margin
+
+
 def simulate_detections(paths: Paths, out: Path, *, sigma_px: float = 1.0, mode: str = "box",
                         min_box_px: float = 4.0, seed: int = 0) -> int:
     """Write a detections CSV (``image,xmin,ymin,xmax,ymax,label,time`` for ``mode="box"``, or
     ``image,x,y,label,time`` with the projected true ground point for ``mode="point"``) for
-    every zoom photo whose view holds a target. Returns the number of detections."""
+    every zoom photo whose view holds a target that is not hidden from the camera (line of sight to
+a point at 80% of its height, tested on ``truth/world.ply``). Returns the number of detections."""
     truth = TruthTracks(paths.truth / "targets.csv")
     poses = read_poses(paths.truth / "poses.txt")
     cams = read_intrinsics(paths.truth / "intrinsics.txt")
@@ -109,6 +131,7 @@ def simulate_detections(paths: Paths, out: Path, *, sigma_px: float = 1.0, mode:
     world = json.loads((paths.truth / "world.json").read_text()) if (paths.truth / "world.json").is_file() else {}
     sizes = {k: tuple(v["size"]) for k, v in world.get("targets", {}).items()}
     rng = np.random.default_rng(seed)
+    occluder = _TrueWorld(paths.truth / "world.ply") if (paths.truth / "world.ply").is_file() else None
     rows = []
     for name in sorted(poses):
         if not name.rsplit(".", 1)[0].endswith("_Z") or name not in times:
@@ -119,6 +142,9 @@ def simulate_detections(paths: Paths, out: Path, *, sigma_px: float = 1.0, mode:
             X = truth.at(label, t)
             if X is None:
                 continue
+            size = sizes.get(label, (1.0, 1.0, 1.5))
+            if occluder is not None and occluder.hidden(pose.center, X + [0, 0, 0.8 * size[2]]):
+                continue  # a detector cannot see a target hidden by a building or a tree
             if mode == "point":
                 uv, front = cam.project(pose.transform(X[None]))
                 if not front[0] or not cam.in_image(uv[0]):
@@ -126,7 +152,7 @@ def simulate_detections(paths: Paths, out: Path, *, sigma_px: float = 1.0, mode:
                 u, v = uv[0] + rng.normal(0, sigma_px, 2)
                 rows.append(f"{name},{u:.2f},{v:.2f},{label},{t:.3f}")
                 continue
-            corners = _box_corners(X, truth.heading(label, t), sizes.get(label, (1.0, 1.0, 1.5)))
+            corners = _box_corners(X, truth.heading(label, t), size)
             uv, front = cam.project(pose.transform(corners))
             if not front.all():
                 continue

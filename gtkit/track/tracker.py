@@ -47,10 +47,11 @@ class TrackSettings:
     detections: str = ""           # CSV / labelme JSON / folder; "" = the project's detections.csv
     poses: str = ""                # wide poses (world-to-camera); "" = work/localize/poses.txt
     covariances: str = ""          # 6x6 pose covariances; "" = covariances.txt beside the poses, if any
-    foot_point: str = "bottom_centre"  # box bottom centre (ground contact) or "centre" (see targets.py)
-    centre_height: dict = field(default_factory=lambda: {"car": 1.5, "person": 1.7})
-    # with foot_point="centre": the box centre is taken as the point half this height (m, by label)
-    # above the ground, so its ray is cast on DSM + height/2 and the ground point below is reported
+    foot_point: str = "centre"     # for boxes: "centre" (lifted, below) or "bottom_centre" (see targets.py)
+    centre_height: dict = field(default_factory=lambda: {"car": 1.5, "person": 1.7, "default": 1.5})
+    # with foot_point="centre": a box's centre is the image of the target's body centre, half its
+    # height (m, by label; "default" for other labels) above the ground, so its ray is cast on
+    # DSM + height/2 and the ground point below is reported. Pixel detections are used as they are.
     smooth: bool = True            # RTS-smoothed track per label (sequences)
     step_m: float = 0.0            # ray-marching step; 0 = half a DSM cell
     tol_m: float = 0.01            # bisection tolerance along the ray
@@ -139,7 +140,9 @@ def locate(dets: list[Detection], poses: dict[str, Pose], covs: dict, rig: Rig, 
             rec.update(status="bad_pixel", message=f"pixel ({d.u:.1f}, {d.v:.1f}) is outside the "
                        f"{cam.width}x{cam.height} photo")
             continue
-        lift = 0.5 * float(s.centre_height.get(d.label, 0.0)) if s.foot_point == "centre" else 0.0
+        lift = 0.0
+        if s.foot_point == "centre" and d.box is not None:
+            lift = 0.5 * float(s.centre_height.get(d.label, s.centre_height.get("default", 0.0)))
         todo.append((len(recs) - 1, pose, cam, (d.u, d.v), lift))
     # cast the main rays, grouped by lift (one vectorised call per group)
     for lift in sorted({t[4] for t in todo}):
