@@ -388,11 +388,13 @@ def write_tiled(mesh: Mesh, out_dir: str | Path, crs: str, offset=(0.0, 0.0, 0.0
 
     Fidelity (measured, see tests/test_import_tiled.py and the issue-9 report): geometry and depth
     render bit-identically in both modes (with ``TileStreamer``'s shared upload origin); colours are
-    bit-identical with ``"share"``; with ``"crop"`` the texture is sampled through rescaled
-    coordinates and a different mip pyramid, so a few percent of pixels differ (99 %+ identical on
-    power-of-two textures, ~96-98 % on the sample site's 1000 px texture, differences up to a few
-    tens of grey levels on high-frequency texture). Textures are written losslessly (PNG) unless
-    ``texture_format`` says otherwise.
+    bit-identical with ``"share"``. With ``"crop"`` colours are bit-identical too when the
+    renderer samples with anisotropy 1 (checked, trilinear, magnified and minified); with the
+    renderer's 8x anisotropic filtering, Mesa llvmpipe samples non-power-of-two textures in a
+    size-dependent way, so some pixels differ (99.9 % identical on power-of-two source textures,
+    ~96-98 % on the sample site's 1000 px texture, up to a few tens of grey levels on
+    high-frequency texture). Textures are written losslessly (PNG) unless ``texture_format``
+    says otherwise.
     Returns the output folder.
     """
     if texture not in ("crop", "share"):
