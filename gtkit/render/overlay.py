@@ -9,7 +9,7 @@ over the photo in one of four modes, used alike by the annotator GUI and ``gtkit
 ``checker``  a checkerboard of ``checker_px`` tiles alternating photo and render
 
 Alignment measures (:func:`alignment`), both in full-resolution photo pixels, computed at a
-working resolution whose long side is at most ``max_side`` px, only where the model was
+working resolution whose long side is at most 768 px (``MEASURE_SIDE``), only where the model was
 rendered (eroded by a few pixels so the model's outline against empty background does not count):
 
 ``misalignment_px`` (the headline figure)
@@ -242,14 +242,27 @@ def local_shifts(photo: np.ndarray, render: np.ndarray, mask: np.ndarray, tile: 
     return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
 
+MEASURE_SIDE = 768  # the measures are computed at most this size (long side): same figure at any display size
+
+
 def alignment(photo: np.ndarray, render: np.ndarray, valid: np.ndarray | None = None, *, scale: float = 1.0,
-              sigma: float = 1.5, tile: int = 96) -> Alignment:
+              sigma: float = 1.5, tile: int = 96, max_side: int = MEASURE_SIDE) -> Alignment:
     """Both alignment measures for a photo and a render of the same size (module docstring).
 
     ``scale`` is the size of these arrays relative to the full-resolution photo, so the
-    results are in full-resolution pixels."""
+    results are in full-resolution pixels. Larger arrays are first reduced to ``max_side``."""
+    import cv2
+
     _check(photo, render)
     v = _valid(render, valid)
+    h, w = photo.shape[:2]
+    if max(h, w) > max_side:
+        k = max_side / max(h, w)
+        size = (max(1, round(w * k)), max(1, round(h * k)))
+        photo = cv2.resize(photo, size, interpolation=cv2.INTER_AREA)
+        render = cv2.resize(render, size, interpolation=cv2.INTER_AREA)
+        v = cv2.resize(v.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+        scale *= size[0] / w
     inner = _inner(v)
     r2p, p2r, n_r, n_p = edge_distance(photo, render, inner, sigma)
     sh = local_shifts(photo, render, _inner(v, 8), tile)
@@ -298,7 +311,7 @@ def read_photo(path: str | Path, size: tuple[int, int] | None = None) -> np.ndar
 
 @dataclass
 class OverlaySettings:
-    max_side: int = 1024          # long side of the overlays and of the measure's working images
+    max_side: int = 1024          # long side of the overlay PNGs (the measures use at most MEASURE_SIDE)
     modes: tuple[str, ...] = MODES  # which overlay PNGs to write per image
     alpha: float = 0.5            # blend weight of the render
     position: float = 0.5         # swipe divider, fraction of the width
