@@ -14,6 +14,7 @@ states them (for DJI/GPS data usually ellipsoidal; gtkit never changes the verti
 Reading::
 
     dsm = Dsm.open(project.paths.dsm, project.frame)   # heights in the world frame
+    dsm = Dsm.for_project("site")                      # the same
     z = dsm.height_at(x, y)                            # bilinear, NaN outside / where empty
     hit = dsm.intersect_ray(origin, direction)         # first crossing of a ray with the surface
 """
@@ -180,6 +181,12 @@ class Dsm:
         a[~np.isfinite(a)] = np.nan
         grid = Grid.from_transform(transform, w, h, frame.origin)
         return cls(a - frame.origin[2], grid, frame, path)
+
+    @classmethod
+    def for_project(cls, project: Project | str | Path) -> "Dsm":
+        """The project's ``exports/dsm.tif`` in its world frame."""
+        proj = project if isinstance(project, Project) else Project.load(project)
+        return cls.open(proj.paths.dsm, proj.frame)
 
     @property
     def resolution(self) -> float:
