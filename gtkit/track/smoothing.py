@@ -3,7 +3,11 @@ smoother in 3D, each measurement weighted by its propagated covariance.
 
 Process model: white-noise acceleration with spectral density ``accel_sigma**2`` per axis
 (m/s^2; a car cornering ~2, a walking person ~0.5). Measurements whose innovation exceeds the
-``gate_chi2`` (3 degrees of freedom) are flagged as outliers and left out of the update.
+``gate_chi2`` (3 degrees of freedom) are flagged as outliers and left out of the update (never
+two in a row, so a turn the model did not expect cannot make the filter drop the track).
+On the small sample (shots 2 s apart, a car at 8 m/s turning at street corners) smoothing
+changes the median error little (car 0.97 -> 1.02 m, person 0.80 -> 0.77 m with noisy poses):
+the errors of one shot are mostly systematic (its pose), not frame-to-frame jitter.
 """
 from __future__ import annotations
 
@@ -14,7 +18,7 @@ import numpy as np
 
 @dataclass
 class SmoothingSettings:
-    accel_sigma: float = 1.5       # m/s^2, process noise (white acceleration) per axis
+    accel_sigma: float = 3.0       # m/s^2, process noise (white acceleration) per axis
     meas_sigma_m: float = 2.0      # per-axis sigma of a point without a propagated covariance
     gate_chi2: float = 16.27       # 3-dof chi-square at p = 0.001; innovations above it are outliers
     init_speed_sigma: float = 20.0  # m/s, prior on the first velocity
@@ -56,7 +60,8 @@ def smooth_track(times, points, covs=None, s: SmoothingSettings = SmoothingSetti
         xp_all[k], Pp_all[k], F_all[k] = x, P, F
         y = z[k] - H @ x
         S = H @ P @ H.T + Rm[k]
-        if k > 0 and float(y @ np.linalg.solve(S, y)) > s.gate_chi2:
+        # gate, but never two in a row: a manoeuvre the model did not expect must not lose the track
+        if k > 0 and not outlier[k - 1] and float(y @ np.linalg.solve(S, y)) > s.gate_chi2:
             outlier[k] = True
         else:
             K = P @ H.T @ np.linalg.inv(S)
