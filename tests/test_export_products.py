@@ -99,7 +99,7 @@ def test_coordinates_csv_geojson_geotxt(project, tmp_path):
     write_poses(pose_file, cams)
     targets = tmp_path / "targets.csv"
     lon, lat = Transformer.from_crs("EPSG:32650", "EPSG:4326", always_xy=True).transform(500200.0, 4000500.0)
-    targets.write_text(f"id,time,lon,lat,height\ncar,12.5,{lon!r},{lat!r},55.25\n")
+    targets.write_text(f"id,time,lon,lat,height\ncar,12.5,{lon!r},{lat!r},55.25\nlost,13.0,,,\n")
     (project.paths.gcp_list).write_text("EPSG:32650\n500130.5 4000470.25 52.0 100.5 200.5 reference/R01_003_N.jpg gcp7\n"
                                         "500130.5 4000470.25 52.0 300.5 210.5 reference/R01_004_N.jpg gcp7\n")
     files = coordinates.run(project, coordinates.CoordinatesSettings(poses=str(pose_file), targets=str(targets)))
@@ -128,7 +128,14 @@ def test_coordinates_csv_geojson_geotxt(project, tmp_path):
     t = {r["name"]: r for r in csv.DictReader(files["targets.csv"].read_text().splitlines()[1:])}
     assert float(t["car"]["easting"]) == pytest.approx(500200.0, abs=1e-3) and t["car"]["time"] == "12.5"
     assert float(t["gcp_gcp7"]["northing"]) == pytest.approx(4000470.25, abs=1e-4)
-    assert len(t) == 2  # the GCP observed in two photos is one target
+    assert len(t) == 2  # the GCP observed in two photos is one target; "lost" has no coordinates
+    # the tracking stage's CSV (x,y,z in the CRS, label, time) is the default targets file
+    project.paths.tracks.write_text("# gtkit track\nlabel,time,image,x,y,z,lon,lat,h,status\n"
+                                    f"car,1.0,q/1_Z.jpg,500210.0,4000510.0,56.0,{lon!r},{lat!r},56.0,ok\n")
+    files = coordinates.run(project, coordinates.CoordinatesSettings(poses=str(pose_file)))
+    t = list(csv.DictReader(files["targets.csv"].read_text().splitlines()[1:]))
+    car = [r for r in t if r["name"] == "car"][0]
+    assert float(car["easting"]) == pytest.approx(500210.0) and car["image"] == "q/1_Z.jpg" and "x" not in car
 
 
 def test_cli_export_mesh_and_bad_inputs(project, tmp_path, capsys):

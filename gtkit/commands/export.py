@@ -6,7 +6,7 @@ Examples::
     gtkit export dsm --input model.laz --crs EPSG:32615 --out dsm.tif     # a file outside a project
     gtkit export ortho site [--resolution 0.1]
     gtkit export mesh site --format glb [--decimate 200000]
-    gtkit export coords site [--poses work/pseudo_gt/poses.txt] [--targets tracks.csv]
+    gtkit export coords site [--poses work/register/poses.txt] [--targets exports/tracks.csv]
 """
 from __future__ import annotations
 
@@ -58,8 +58,8 @@ def register(sub):
 
     c = ex.add_parser("coords", help="camera poses and targets as CSV / GeoJSON (WGS84 + CRS) and ODM geo.txt")
     c.add_argument("project")
-    c.add_argument("--poses", help="pose file (default: the pseudo-GT poses under work/ if present)")
-    c.add_argument("--targets", help="targets CSV (x,y,z | easting,northing,height | lon,lat,height columns)")
+    c.add_argument("--poses", help="pose file (default: work/register/poses.txt (pseudo-GT) + work/sfm_reference/poses.txt if present)")
+    c.add_argument("--targets", help="targets CSV: x,y,z or easting,northing,height (CRS) | lon,lat,height | world_x,world_y,world_z (default: exports/tracks.csv if present)")
     c.add_argument("--no-gcps", action="store_true", help="do not export gcp_list.txt's points")
     c.add_argument("--out-dir", help="output folder (default: exports/coordinates)")
     c.set_defaults(func=run_coords)

@@ -14,8 +14,10 @@ Files written to ``exports/coordinates/`` (``<what>`` = ``cameras`` or ``targets
     geo.txt                  ODM: first line the CRS, then ``image_name geo_x geo_y geo_z yaw pitch roll``
 
 Targets come from a CSV given by the caller (a tracking result, surveyed marks) whose header
-names the coordinate columns: ``x,y,z`` (world frame), ``easting,northing,height`` (project
-CRS) or ``lon,lat,height`` (WGS84); any other columns (id, time, ...) are carried along.
+names the coordinate columns: ``x,y,z`` or ``easting,northing,height`` (project CRS),
+``lon,lat,height`` (WGS84) or ``world_x,world_y,world_z`` (world frame); rows without
+coordinates are skipped; other columns (label, time, ...) are carried along. By default the
+tracking stage's ``exports/tracks.csv`` is used when present.
 The ground control points of ``gcp_list.txt`` are exported as targets ``gcp_<name>`` too.
 """
 from __future__ import annotations
@@ -40,14 +42,15 @@ log = logging.getLogger(__name__)
 
 STAGE = "export_coordinates"
 HEIGHT_NOTE = "heights in metres as given by the inputs (GPS/DJI: ellipsoidal, WGS 84); not converted"
-# where the pose stages write their results, best first (the pseudo-GT when present)
-POSE_CANDIDATES = ("pseudo_gt/poses.txt", "register/poses.txt", "sfm/poses.txt", "sfm_reference/poses.txt")
+# where the pose stages write their results: the pseudo-GT of the query photos (gtkit register)
+# and the georegistered reference block; all that exist are exported, the first wins a name clash
+POSE_CANDIDATES = ("register/poses.txt", "sfm_reference/poses.txt")
 
 
 @dataclass
 class CoordinatesSettings:
-    poses: str | None = None      # pose file (name qw qx qy qz tx ty tz); None = the pseudo-GT poses if present
-    targets: str | None = None    # targets CSV (see module doc); None = none besides the GCPs
+    poses: str | None = None      # pose file (name qw qx qy qz tx ty tz); None = the pseudo-GT + reference poses
+    targets: str | None = None    # targets CSV (see module doc); None = exports/tracks.csv (gtkit track) if present
     include_gcps: bool = True     # also export gcp_list.txt's points as targets
 
 
@@ -59,16 +62,16 @@ class GeoPoint:
     extra: dict | None = None
 
 
-def default_pose_file(project: Project) -> Path | None:
-    for rel in POSE_CANDIDATES:
-        p = project.paths.work / rel
-        if p.is_file():
-            return p
-    return None
+def default_pose_files(project: Project) -> list[Path]:
+    return [project.paths.work / rel for rel in POSE_CANDIDATES if (project.paths.work / rel).is_file()]
 
 
-def cameras_from_poses(path: Path) -> list[GeoPoint]:
-    return [GeoPoint(name, pose.center, rotation_to_dji(pose.R)) for name, pose in sorted(read_poses(path).items())]
+def cameras_from_poses(paths: list[Path]) -> list[GeoPoint]:
+    poses = {}
+    for path in paths:
+        for name, pose in read_poses(path).items():
+            poses.setdefault(name, pose)
+    return [GeoPoint(name, pose.center, rotation_to_dji(pose.R)) for name, pose in sorted(poses.items())]
 
 
 def targets_from_csv(path: Path, frame: GeoFrame) -> list[GeoPoint]:
@@ -82,23 +85,29 @@ def targets_from_csv(path: Path, frame: GeoFrame) -> list[GeoPoint]:
         return []
     cols = {c.strip().lower(): c for c in rows[0].keys() if c is not None}
     h_col = next((cols[c] for c in ("height", "h", "z", "alt", "altitude") if c in cols), None)
-    name_col = next((cols[c] for c in ("name", "id", "target", "label") if c in cols), None)
-    if {"x", "y", "z"} <= cols.keys():
-        kind, keys = "world", (cols["x"], cols["y"], cols["z"])
+    name_col = next((cols[c] for c in ("name", "id", "label", "target") if c in cols), None)
+    if {"world_x", "world_y", "world_z"} <= cols.keys():
+        kind, keys = "world", (cols["world_x"], cols["world_y"], cols["world_z"])
+    elif {"x", "y", "z"} <= cols.keys():
+        kind, keys = "crs", (cols["x"], cols["y"], cols["z"])
     elif {"easting", "northing"} <= cols.keys() and h_col:
         kind, keys = "crs", (cols["easting"], cols["northing"], h_col)
     elif {"lon", "lat"} <= cols.keys() and h_col:
         kind, keys = "wgs84", (cols["lon"], cols["lat"], h_col)
     else:
-        raise GtkitError("header must name x,y,z or easting,northing,height or lon,lat,height columns", path)
+        raise GtkitError("header must name x,y,z or easting,northing,height (project CRS), lon,lat,height "
+                         "(WGS84) or world_x,world_y,world_z columns", path)
+    derived = {cols[c] for c in ("lon", "lat", "h", "easting", "northing", "height", "x", "y", "z") if c in cols}
     out = []
     for n, r in enumerate(rows, 2):
+        if all(not (r.get(k) or "").strip() for k in keys):
+            continue  # a row without coordinates (e.g. a detection that was not located)
         try:
             v = np.array([float(r[k]) for k in keys])
         except (TypeError, ValueError):
             raise GtkitError(f"line {n}: coordinates are not numbers", path) from None
         xyz = v if kind == "world" else frame.crs_to_local(v) if kind == "crs" else frame.wgs84_to_local(*v)
-        extra = {k: r[k] for k in r if k not in keys and k != name_col and k is not None}
+        extra = {k: r[k] for k in r if k is not None and k not in keys and k != name_col and k not in derived}
         out.append(GeoPoint(str(r[name_col]) if name_col else f"target_{n - 1}", np.asarray(xyz, float), None, extra))
     return out
 
@@ -192,27 +201,29 @@ def run(project: Project | str | Path, settings: CoordinatesSettings | None = No
     proj = project if isinstance(project, Project) else Project.load(project)
     frame = proj.frame
     out_dir = Path(out_dir) if out_dir is not None else proj.paths.coordinates
-    pose_file = Path(settings.poses) if settings.poses else default_pose_file(proj)
+    pose_files = [Path(settings.poses)] if settings.poses else default_pose_files(proj)
+    targets_file = Path(settings.targets) if settings.targets else (
+        proj.paths.tracks if proj.paths.tracks.is_file() else None)
     gcp = proj.paths.gcp_list if settings.include_gcps and proj.paths.gcp_list.is_file() else None
-    inputs = {str(p): file_fingerprint(p) for p in (pose_file, settings.targets and Path(settings.targets), gcp) if p}
+    inputs = {str(p): file_fingerprint(p) for p in (*pose_files, targets_file, gcp) if p}
     inputs.update(crs=frame.crs_spec, origin=list(frame.origin), out=str(out_dir))
     stage_dir = proj.paths.stage(STAGE)
     if out_dir.is_dir() and stage_done(stage_dir, settings, inputs):
         log.info("coordinates in %s are up to date; skipping", out_dir)
         return {p.name: p for p in sorted(out_dir.iterdir()) if p.is_file()}
     written: dict[str, Path] = {}
-    if pose_file is None:
+    if not pose_files:
         log.warning("no pose file (give --poses; looked for work/%s)", ", work/".join(POSE_CANDIDATES))
     else:
-        cams = cameras_from_poses(pose_file)
+        cams = cameras_from_poses(pose_files)
         if cams:
             written["cameras.csv"] = write_csv(out_dir / "cameras.csv", cams, frame)
             written["cameras_wgs84.geojson"] = write_geojson(out_dir / "cameras_wgs84.geojson", cams, frame, False)
             written["cameras_crs.geojson"] = write_geojson(out_dir / "cameras_crs.geojson", cams, frame, True)
             written["geo.txt"] = write_geo_txt(out_dir / "geo.txt", cams, frame)
     targets: list[GeoPoint] = []
-    if settings.targets:
-        targets += targets_from_csv(Path(settings.targets), frame)
+    if targets_file is not None:
+        targets += targets_from_csv(targets_file, frame)
     if gcp is not None:
         targets += targets_from_gcp_list(gcp, frame)
     if targets:
@@ -222,7 +233,8 @@ def run(project: Project | str | Path, settings: CoordinatesSettings | None = No
     if not written:
         raise GtkitError("nothing to export: no pose file (give --poses) and no targets (give --targets)",
                          proj.paths.root)
-    mark_stage_done(stage_dir, settings, inputs, files=sorted(written), pose_file=str(pose_file))
+    mark_stage_done(stage_dir, settings, inputs, files=sorted(written), pose_files=[str(p) for p in pose_files],
+                    targets_file=str(targets_file) if targets_file else None)
     for k, p in written.items():
         log.info("wrote %s", p)
     return written
