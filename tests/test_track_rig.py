@@ -30,6 +30,7 @@ def textured_ground(size=400.0, tex=2048, seed=0):
 
 WIDE = Camera.from_hfov(640, 480, 82.0)
 ZOOM_TRUE = Camera.pinhole(640, 480, 4.5 * WIDE.fx)
+ZOOM2_TRUE = Camera.pinhole(640, 480, 1.6 * ZOOM_TRUE.fx)
 R_ZW = Rotation.from_euler("xyz", [1.2, -1.8, 0.6], degrees=True).as_matrix()
 OFFSET = np.array([0.06, 0.02, 0.0])
 
@@ -40,25 +41,30 @@ def pairs():
     rig_true = Rig(R_ZW, OFFSET, [ZoomSetting(ZOOM_TRUE)])
     rng = np.random.default_rng(1)
     images = {}
-    for k in range(6):
+    for k in range(9):  # six pairs at the first zoom setting, three at a second (1.6x longer)
         C = np.array([rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(90, 140)])
         wide = Pose.from_dji(rng.uniform(-180, 180), rng.uniform(-90, -60), 0.0, C)
         images[f"{k}_W"] = r.render(WIDE, wide).rgb
-        images[f"{k}_Z"] = r.render(ZOOM_TRUE, rig_true.zoom_pose(wide)).rgb
+        images[f"{k}_Z"] = r.render(ZOOM_TRUE if k < 6 else ZOOM2_TRUE, rig_true.zoom_pose(wide)).rgb
     r.release()
     return images
 
 
 def test_rig_calibration_recovers_rotation_and_focal(pairs, tmp_path):
-    nominal = ZoomSetting(Camera.pinhole(640, 480, ZOOM_TRUE.fx * 0.9))  # spec focal 10% off
-    names = [(f"{k}_W", f"{k}_Z") for k in range(6)]
-    rig = calibrate_pairs(names, {w: WIDE for w, _ in names}, [nominal], {z: 0 for _, z in names},
+    # two focal settings (EXIF 10 mm and 16 mm); the nominal focal lengths are 10% off
+    nominal = [ZoomSetting(Camera.pinhole(640, 480, ZOOM_TRUE.fx * 0.9), 10.0),
+               ZoomSetting(Camera.pinhole(640, 480, ZOOM2_TRUE.fx * 0.9), 16.0)]
+    names = [(f"{k}_W", f"{k}_Z") for k in range(9)]
+    rig = calibrate_pairs(names, {w: WIDE for w, _ in names}, nominal, {z: int(z[0]) // 6 for _, z in names},
                           RigCalibrationSettings(offset_m=tuple(OFFSET)), pairs.__getitem__)
     err = rig_errors(rig, R_ZW, ZOOM_TRUE)
-    print("rig errors", err, rig.info["median_px"], rig.info["n_points"])
-    assert rig.info["n_pairs"] >= 5
+    f2 = rig.zoom_camera(640, 480, 16.0).fx
+    print("rig errors", err, "setting 2 focal err %", 100 * (f2 / ZOOM2_TRUE.fx - 1), rig.info["median_px"])
+    assert rig.info["n_pairs"] >= 7
     assert err["rotation_err_deg"] < 0.05
     assert abs(err["focal_err_pct"]) < 0.5
+    assert abs(100 * (f2 / ZOOM2_TRUE.fx - 1)) < 0.5
+    assert np.isclose(rig.zoom_camera(640, 480, 10.0).fx, rig.settings[0].camera.fx)
     # round trip through the file, and the zoom pose composes as documented
     rig.save(tmp_path / "rig.json")
     back = Rig.load(tmp_path / "rig.json")
@@ -67,9 +73,8 @@ def test_rig_calibration_recovers_rotation_and_focal(pairs, tmp_path):
     w = Pose.from_dji(30, -45, 0, [1, 2, 100])
     z = back.zoom_pose(w)
     assert np.allclose(z.center, w.center + w.R.T @ OFFSET)
-    # another focal setting: scaled by the EXIF focal ratio
-    rig.settings[0].focal_mm = 50.0
-    assert np.isclose(rig.zoom_camera(640, 480, 100.0).fx, 2 * rig.zoom_camera(640, 480, 50.0).fx)
+    # a focal setting that was not calibrated: the nearest one scaled by the EXIF focal ratio
+    assert np.isclose(rig.zoom_camera(640, 480, 32.0).fx, 2 * rig.zoom_camera(640, 480, 16.0).fx)
 
 
 def test_rig_file_errors_name_the_file(tmp_path):
