@@ -57,7 +57,7 @@ def _model(cam: Camera, poses: dict[str, Pose], points=None, rng=None, noise_px=
     return rec
 
 
-def make_site(tmp_path, seed=0, mistakes=0.0, n_ties=20, seqs=("seq1",), tie_override=None):
+def make_site(tmp_path, seed=0, mistakes=0.0, n_ties=20, seqs=("seq1",), tie_override=None, one_query_click=False):
     """A project with a reference model, query models in arbitrary frames, clicks and truth."""
     rng = np.random.default_rng(seed)
     proj = Project.create(tmp_path, GeoFrame("EPSG:32650", (500000.0, 4000000.0, 0.0)))
@@ -68,7 +68,7 @@ def make_site(tmp_path, seed=0, mistakes=0.0, n_ties=20, seqs=("seq1",), tie_ove
             for eye, (yaw, pitch) in {"N": (0, -90), "F": (0, -45), "B": (180, -45)}.items():
                 ref[f"reference/R{i}_{j}_{eye}.jpg"] = Pose.from_dji(yaw, pitch, 0.0, [x, y - 40 * np.sign(pitch + 60) * 0, 120.0]
                                                                    if eye == "N" else [x, y - (1 if yaw == 0 else -1) * 60, 120.0])
-    _model(REF_CAM, ref).write(_mk(P.stage("sfm_reference") / "model"))
+    _model(REF_CAM, ref, _ground(rng, 1500, 90.0), rng, 0.3).write(_mk(P.stage("sfm_reference") / "model"))
     truth, tie_list = {}, []
     clicks_bad = set()
     for s, seq in enumerate(seqs):
@@ -94,22 +94,29 @@ def make_site(tmp_path, seed=0, mistakes=0.0, n_ties=20, seqs=("seq1",), tie_ove
             (P.images / n).write_bytes(b"")
         qm.write(_mk(P.stage("sfm_queries") / seq / "model"))
         tx = _ground(rng, 400, half=50.0) if tie_override is None else tie_override
-        for X in tx:
-            qo = [(n, uv) for n, p in qposes.items() for uv, ok in [_visible(Q_CAM, p, X[None], 40)] if ok[0]]
-            ro = [(n, uv) for n, p in ref.items() for uv, ok in [_visible(REF_CAM, p, X[None], 40)] if ok[0]]
-            if len(qo) < 2 or len(ro) < 2:
-                continue
-            qo, ro = qo[:3], ro[:3]
-            tid = f"{seq}_tp{len([t for t in tie_list if t.id.startswith(seq)]):02d}"
-            obs = [Observation(n, *(uv[0] + rng.normal(0, CLICK_NOISE, 2))) for n, uv in qo + ro]
-            if rng.uniform() < mistakes:  # a gross click mistake in one photo
-                o = obs[rng.integers(len(obs))]
-                o.x += rng.choice([-1, 1]) * rng.uniform(40, 120)
-                o.y += rng.choice([-1, 1]) * rng.uniform(40, 120)
-                clicks_bad.add(tid)
-            tie_list.append(TiePoint(tid, obs, "simulated"))
-            if len([t for t in tie_list if t.id.startswith(seq)]) >= n_ties:
-                break
+        qnames = list(qposes)
+        per_image = max(1, n_ties // len(qnames)) if one_query_click else n_ties
+        for k_img, qn in enumerate(qnames if one_query_click else qnames[:1]):
+            count = 0
+            for X in tx[rng.permutation(len(tx))] if one_query_click else tx:
+                qo = [(n, uv) for n, p in qposes.items() for uv, ok in [_visible(Q_CAM, p, X[None], 40)] if ok[0]]
+                ro = [(n, uv) for n, p in ref.items() for uv, ok in [_visible(REF_CAM, p, X[None], 40)] if ok[0]]
+                if len(qo) < 2 or len(ro) < 2 or (one_query_click and qn not in dict(qo)):
+                    continue
+                if one_query_click:  # as the sample generator clicks: one query photo, 1-3 reference photos
+                    qo, ro = [(qn, dict(qo)[qn])], ro[:rng.integers(1, 4)]
+                qo, ro = qo[:3], ro[:3]
+                tid = f"{seq}_tp{len([t for t in tie_list if t.id.startswith(seq)]):02d}"
+                obs = [Observation(n, *(uv[0] + rng.normal(0, CLICK_NOISE, 2))) for n, uv in qo + ro]
+                if rng.uniform() < mistakes:  # a gross click mistake in one photo
+                    o = obs[rng.integers(1 if one_query_click else 0, len(obs))]
+                    o.x += rng.choice([-1, 1]) * rng.uniform(30, 80)
+                    o.y += rng.choice([-1, 1]) * rng.uniform(30, 80)
+                    clicks_bad.add(tid)
+                tie_list.append(TiePoint(tid, obs, "simulated"))
+                count += 1
+                if count >= per_image:
+                    break
     write_tiepoints(P.tiepoints, tie_list)
     return proj, truth, clicks_bad
 
@@ -133,13 +140,32 @@ def test_registration_meets_targets(tmp_path):
     assert 0 < np.median(s) < 0.5
 
 
+def test_one_query_click_per_tiepoint(tmp_path):
+    """The sample's click pattern: each tie point in one query photo and 1-3 reference photos,
+    so block positions come from the blocks' depth; 20 % gross mistakes."""
+    proj, truth, bad = make_site(tmp_path, seed=5, mistakes=0.2, n_ties=40, one_query_click=True)
+    res = register.run(proj)
+    assert res["n_registered"] == 8
+    est = read_poses(proj.paths.stage("register") / "poses.txt")
+    m = medians(pose_errors(est, truth))
+    # this scene's geometry allows ~0.1 m (the BA's own sigma): errors must agree with it
+    sig = np.median([res["images"][n]["sigma_pos_m"] for n in est])
+    assert m["median_pos_err_m"] < 2.5 * sig and m["median_rot_err_deg"] < 0.15, (m, sig)
+    # every gross mistake that reaches the BA is listed (one on a lone ref click may be undetectable
+    # if along the epipolar line, but then it also does no harm)
+    listed = set(res["bad_tiepoints"])
+    assert len(bad & listed) >= 0.7 * len(bad), (bad, listed)
+    assert res["median_tiepoint_reproj_px"] < 1.5
+
+
 def test_gross_click_mistakes_are_listed(tmp_path):
     proj, truth, bad = make_site(tmp_path, seed=2, mistakes=0.2, n_ties=20)
     assert len(bad) >= 2
     res = register.run(proj)
     est = read_poses(proj.paths.stage("register") / "poses.txt")
     m = medians(pose_errors(est, truth))
-    assert m["median_pos_err_m"] < 0.15 and m["median_rot_err_deg"] < 0.1, m
+    sig = np.median([res["images"][n]["sigma_pos_m"] for n in est])
+    assert m["median_pos_err_m"] < min(0.25, 2.5 * sig) and m["median_rot_err_deg"] < 0.1, (m, sig)
     assert bad <= set(res["bad_tiepoints"]), (bad, res["bad_tiepoints"].keys())
     assert res["median_tiepoint_reproj_px"] < 1.5
 

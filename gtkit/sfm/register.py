@@ -78,25 +78,35 @@ class TieStatus:
 
 
 def depth_from_model(rec: pycolmap.Reconstruction, name: str, uv: np.ndarray, k: int = 8,
-                     max_px: float = 60.0) -> np.ndarray | None:
-    """A clicked pixel of a one-click tie point lifted to 3D with the median depth of the block's
-    own 3D points observed near the click (local surface), or None when there are too few."""
+                     max_px: float = 120.0) -> np.ndarray | None:
+    """A clicked pixel of a one-click tie point lifted to 3D on the local surface of the block's
+    own 3D points observed near the click: a plane through the ``k`` nearest (in the image) where
+    they span one, else their median depth; None when there are too few."""
     im = rec.find_image_with_name(name)
     if im is None or not im.has_pose:
         return None
     pts = [(p2.xy, rec.points3D[p2.point3D_id].xyz) for p2 in im.points2D if p2.has_point3D()]
-    if len(pts) < k:
+    if len(pts) < 3:
         return None
     xy = np.array([p[0] for p in pts])
     d = np.linalg.norm(xy - uv, axis=1)
     near = np.argsort(d)[:k]
-    if d[near].max() > max_px:
+    near = near[d[near] <= max_px]
+    if len(near) < 3:
         return None
     pose = Pose.from_pycolmap(im.cam_from_world())
-    z = pose.transform(np.array([pts[i][1] for i in near]))[:, 2]
     cam = Camera.from_pycolmap(rec.cameras[im.camera_id])
-    ray = np.append(cam.image_to_world(uv[None])[0], 1.0) * float(np.median(z))
-    return pose.R.T @ (ray - pose.t)
+    Xc = pose.transform(np.array([pts[i][1] for i in near]))          # camera frame
+    ray = np.append(cam.image_to_world(uv[None])[0], 1.0)               # z = 1
+    depth = float(np.median(Xc[:, 2]))
+    c = Xc.mean(0)
+    _, sv, vt = np.linalg.svd(Xc - c)
+    n = vt[-1]
+    if len(near) >= 4 and sv[1] > 0.2 * sv[0] and abs(n @ ray) > 1e-6:
+        t = float(n @ c / (n @ ray))                                    # ray-plane intersection
+        if 0.5 * Xc[:, 2].min() < t < 2.0 * Xc[:, 2].max():
+            depth = t
+    return pose.R.T @ (ray * depth - pose.t)
 
 
 def _triangulate(tp_obs, poses, cams, max_px):
