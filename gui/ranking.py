@@ -1,5 +1,9 @@
-"""Which reference photos probably overlap a query photo: rank them by the distance between the
-points where their optical axes meet the ground (a plane at the site's ground height).
+"""Which reference photos probably overlap a query photo.
+
+With intrinsics (``cameras.txt``): a 12 x 9 grid of the query's pixel rays is intersected with
+the ground (a plane at the site's ground height) and projected into every reference; the
+references are ranked by the share of those ground points they see (ties: nearer first).
+Without intrinsics: by the distance between the points where the optical axes meet the ground.
 
 Poses come from the registration (pseudo-GT poses) when available, else from the photos'
 priors (EXIF GPS + DJI gimbal angles). No Qt here.
@@ -120,14 +124,50 @@ class OverlapRanker:
             write_json(self.cache_file, {"z_ground": self.z_ground, "points": self._disk})
             self._dirty = False
 
-    def rank(self, query: str, references: list[str]) -> list[tuple[str, float]]:
-        """(reference, distance in metres between ground points), nearest first; references
-        without a pose come last with distance inf, in name order."""
+    @property
+    def cameras(self) -> dict:
+        if not hasattr(self, "_cameras"):
+            from gtkit.io.poses import read_intrinsics
+
+            try:
+                self._cameras = read_intrinsics(self.paths.cameras) if self.paths.cameras.is_file() else {}
+            except GtkitError as e:
+                log.warning("%s", e)
+                self._cameras = {}
+        return self._cameras
+
+    def footprint(self, name: str, n=(12, 9)) -> np.ndarray | None:
+        """Ground points (N, 3) seen by a grid of the photo's pixel rays (None without a pose/camera)."""
+        pose, cam = self.pose(name), self.cameras.get(name)
+        if pose is None or cam is None:
+            return None
+        u, v = np.meshgrid((np.arange(n[0]) + 0.5) / n[0] * cam.width, (np.arange(n[1]) + 0.5) / n[1] * cam.height)
+        d = cam.rays(np.stack([u.ravel(), v.ravel()], 1)) @ pose.R  # world directions
+        C = pose.center
+        down = d[:, 2] < -1e-3
+        t = np.where(down, (self.z_ground - C[2]) / np.where(down, d[:, 2], -1.0), np.nan)
+        t = np.where((t > 0) & (t < 2000.0), t, np.nan)
+        pts = C + t[:, None] * d
+        pts = pts[np.isfinite(pts).all(1)]
+        return pts if len(pts) else None
+
+    def overlap(self, query_points: np.ndarray, ref: str) -> float | None:
+        pose, cam = self.pose(ref), self.cameras.get(ref)
+        if pose is None or cam is None:
+            return None
+        uv, front = cam.project(pose.transform(query_points))
+        return float(np.mean(front & cam.in_image(uv)))
+
+    def rank(self, query: str, references: list[str]) -> list[tuple[str, float, float | None]]:
+        """(reference, distance in metres between axis ground points, overlap share or None),
+        most overlap first (then nearest); references without a pose last, in name order."""
         q = self.point(query)
+        fp = self.footprint(query)
         out = []
         for r in references:
             p = self.point(r)
             d = float(np.linalg.norm((p - q)[:2])) if (p is not None and q is not None) else float("inf")
-            out.append((r, d))
+            ov = self.overlap(fp, r) if fp is not None else None
+            out.append((r, d, ov))
         self.save_cache()
-        return sorted(out, key=lambda x: (x[1], x[0]))
+        return sorted(out, key=lambda x: (-(x[2] or 0.0), x[1], x[0]))

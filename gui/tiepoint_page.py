@@ -137,8 +137,10 @@ class TiePointPage(QWidget):
             counts = self.store.pair_counts(query)
             self.ref_list.blockSignals(True)
             self.ref_list.clear()
-            for name, d in ranked:
+            for name, d, ov in ranked:
                 txt = f"{name}   {d:.0f} m" if d != float("inf") else f"{name}   (no pose)"
+                if ov is not None:
+                    txt = f"{name}   {100 * ov:.0f}% · {d:.0f} m"
                 if counts.get(name):
                     txt += f"   [{counts[name]} tp]"
                 it = QListWidgetItem(txt)

@@ -241,7 +241,7 @@ def test_reference_ranking_puts_overlapping_photos_first(demo):
         for r in refs:
             uvr, front = cams[r].project(poses[r].transform(Xw))
             overlap[r] = float(np.mean(front & cams[r].in_image(uvr)))
-        ranked = [n for n, _ in ranker.rank(q, refs)]
+        ranked = [n for n, *_ in ranker.rank(q, refs)]
         assert overlap[ranked[0]] >= 0.5 * max(overlap.values()), (ranked[:3], overlap)
         assert np.mean([overlap[n] for n in ranked[:3]]) > np.mean([overlap[n] for n in ranked[-3:]])
 

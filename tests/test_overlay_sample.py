@@ -52,3 +52,37 @@ def test_alignment_on_the_sample_true_pose_vs_1m_1deg(sample_root):
         assert off_deg.misalignment_px > max(4.0, 5 * true.misalignment_px)
         if name.endswith("_N.jpg"):  # nadir reference: edges are the model's own texture edges
             assert off_deg.edge_distance_px > true.edge_distance_px + 1.0
+
+
+def test_reference_ranking_from_priors_finds_the_overlapping_photos_on_the_sample(sample_root):
+    """The annotator's reference list (gui.ranking, EXIF/XMP priors only) puts a reference that
+    truly sees most of the query first: true overlap = share of the query's visible surface
+    (true depth) that a reference sees at its true pose."""
+    from gtkit.io.mesh import load_model
+    from gtkit.io.poses import read_intrinsics, read_poses
+    from gtkit.render.renderer import Renderer
+    from gui.ranking import OverlapRanker
+
+    proj = Project.load(sample_root)
+    poses = read_poses(sample_root / "truth/poses.txt")
+    cams = read_intrinsics(sample_root / "truth/intrinsics.txt")
+    rend = Renderer(load_model(sample_root / "model/reference.obj", proj.frame))
+    refs = sorted(n for n in poses if n.startswith("reference/"))
+    ranker = OverlapRanker(proj.paths, proj.frame)
+    ratios = []
+    for q in [n for n in sorted(poses) if n.endswith("_W.jpg")][::5]:
+        cq, pq = cams[q].scaled(0.25), poses[q]
+        d = rend.render(cq, pq, with_rgb=False).depth
+        jj, ii = np.meshgrid(np.arange(2, cq.width, 8), np.arange(2, cq.height, 8))
+        z = d[ii, jj]
+        ok = np.isfinite(z)
+        rays = cq.rays(np.stack([jj[ok] + 0.5, ii[ok] + 0.5], 1))
+        X = (rays * (z[ok] / rays[:, 2])[:, None] - pq.t) @ pq.R
+        true = {}
+        for r in refs:
+            uv, front = cams[r].project(poses[r].transform(X))
+            true[r] = float(np.mean(front & cams[r].in_image(uv)))
+        top = ranker.rank(q, refs)[0][0]
+        ratios.append(true[top] / max(true.values()))
+    print("top-1 true overlap / best:", np.round(ratios, 2))
+    assert np.median(ratios) > 0.9 and min(ratios) > 0.6
