@@ -310,8 +310,9 @@ def plot_tracks(per: list[dict], truth: TruthTracks, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     labels = sorted({r["label"] for r in per if "est" in r}) or sorted(truth.tracks)
-    fig, axes = plt.subplots(1, len(labels), figsize=(6 * len(labels), 5.5), squeeze=False)
-    for ax, lab in zip(axes[0], labels):
+    fig, axes = plt.subplots(2, len(labels), figsize=(6 * len(labels), 8.0), squeeze=False,
+                             gridspec_kw={"height_ratios": [3, 1.4]})
+    for ax, ex, lab in zip(axes[0], axes[1], labels):
         rs = [r for r in per if r["label"] == lab and "est" in r]
         if rs:
             t0 = min(r["time_s"] for r in rs) - 2
@@ -326,10 +327,27 @@ def plot_tracks(per: list[dict], truth: TruthTracks, path: Path) -> Path:
             ax.plot(Tt[:, 0], Tt[:, 1], "o", mfc="none", color="green", ms=5, label="true at photo time")
             ax.plot(E[:, 0], E[:, 1], "x", color="red", ms=6,
                     label=f"estimated (median {np.median([r['err_h_m'] for r in rs]):.2f} m)")
-            S = [r["smoothed"] for r in sorted(rs, key=lambda r: r["time_s"]) if "smoothed" in r]
-            if len(S) >= 2:
-                S = np.array(S)
-                ax.plot(S[:, 0], S[:, 1], "-", color="blue", lw=1, label="smoothed")
+            seqs = sorted({r["image"].rsplit("/", 1)[0] for r in rs})
+            for k, seq in enumerate(seqs):  # one smoothed track per sequence
+                S = [r["smoothed"] for r in sorted(rs, key=lambda r: r["time_s"])
+                     if "smoothed" in r and r["image"].rsplit("/", 1)[0] == seq]
+                if len(S) >= 2:
+                    S = np.array(S)
+                    ax.plot(S[:, 0], S[:, 1], "-", color="blue", lw=1, label="smoothed" if k == 0 else None)
+            rt = sorted(rs, key=lambda r: r["time_s"])
+            idx = np.arange(len(rt))
+            ex.plot(idx, [r["err_h_m"] for r in rt], "x", color="red", label="horizontal")
+            ex.plot(idx, [r["err_3d_m"] for r in rt], ".", color="black", label="3D")
+            sm = [(i, r["smoothed_err_h_m"]) for i, r in zip(idx, rt) if "smoothed_err_h_m" in r]
+            if sm:
+                ex.plot(*zip(*sm), "+", color="blue", label="smoothed, horizontal")
+            ex.set_xticks(idx)
+            ex.set_xticklabels([r["image"].rsplit(".", 1)[0].replace("queries/", "") for r in rt], rotation=90,
+                               fontsize=6)
+            ex.set_xlabel("detection (in time order)")
+            ex.set_ylabel("error (m)")
+            ex.set_ylim(bottom=0)
+            ex.legend(fontsize=7)
         ax.set_title(f"{lab}: {len(rs)} located")
         ax.set_aspect("equal")
         ax.set_xlabel("x east (m, world)")

@@ -5,7 +5,7 @@ pose; the rig gives the zoom pose and camera; the foot-point pixel's ray is marc
 DSM to its first crossing (:mod:`gtkit.track.raycast`); the pose covariance (or the default
 sigmas) is propagated to the point by sampling (:mod:`gtkit.track.uncertainty`). A detection
 that cannot be placed gets a status and a message and no coordinate (no wide pose, the ray
-misses the DSM, ...). Per label, the placed points form a track, optionally RTS-smoothed
+misses the DSM, ...). Per label and sequence, the placed points form a track, optionally RTS-smoothed
 (:mod:`gtkit.track.smoothing`).
 
 Outputs: ``exports/tracks.csv`` (one row per detection: CRS and WGS84 coordinates, height,
@@ -171,12 +171,17 @@ def locate(dets: list[Detection], poses: dict[str, Pose], covs: dict, rig: Rig, 
     return recs
 
 
+def sequence_of(image: str) -> str:
+    """The photo's sequence (its folder under images/): one track per label and sequence."""
+    return image.rsplit("/", 1)[0] if "/" in image else ""
+
+
 def add_smoothing(recs: list[dict], s: TrackSettings) -> None:
-    by_label: dict[str, list[dict]] = {}
+    by_track: dict[tuple[str, str], list[dict]] = {}
     for r in recs:
         if r["status"] == "ok" and r["time"] is not None:
-            by_label.setdefault(r["label"], []).append(r)
-    for label, rs in by_label.items():
+            by_track.setdefault((r["label"], sequence_of(r["image"])), []).append(r)
+    for _key, rs in by_track.items():
         if len(rs) < 2:
             continue
         sm = smooth_track([r["time"] for r in rs], np.array([r["world"] for r in rs]),
@@ -235,14 +240,14 @@ def write_outputs(recs: list[dict], project: Project, out_csv: Path) -> tuple[Pa
                       "properties": {"label": r["label"], "time": r["time"], "image": r["image"],
                                      "x": float(r["crs"][0]), "y": float(r["crs"][1]), "z": float(r["crs"][2]),
                                      "sigma_h_m": r["sigma_h_m"], "sigma_z_m": r["sigma_z_m"]}})
-    for label in sorted({r["label"] for r in recs}):
-        rs = sorted([r for r in recs if r["label"] == label and r["status"] == "ok" and r["time"] is not None],
-                    key=lambda r: r["time"])
+    for label, seq in sorted({(r["label"], sequence_of(r["image"])) for r in recs}):
+        rs = sorted([r for r in recs if r["label"] == label and sequence_of(r["image"]) == seq
+                     and r["status"] == "ok" and r["time"] is not None], key=lambda r: r["time"])
         for kind, key in (("estimated", "wgs84"), ("smoothed", "smoothed_wgs84")):
             pts = [[float(v) for v in r[key]] for r in rs if key in r]
             if len(pts) >= 2:
                 feats.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": pts},
-                              "properties": {"label": label, "track": kind}})
+                              "properties": {"label": label, "sequence": seq, "track": kind}})
     gj = out_csv.with_suffix(".geojson")
     write_json(gj, {"type": "FeatureCollection", "name": "gtkit tracks",
                     "crs_note": f"WGS84 lon/lat (RFC 7946); project CRS {frame.crs_spec} in properties",
