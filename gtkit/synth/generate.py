@@ -61,7 +61,7 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
     world_r = Renderer(mesh, glsl)
     target_r = Renderer()
     timings["world"] = time.perf_counter() - t
-    Project.create(root, frame, name=root.name, extra={"sample": {
+    Project.create(root, frame, name=f"sample-{s.preset}", extra={"sample": {
         "preset": s.preset, "seed": s.seed, "gps_denied": s.gps_denied, "generator": GENERATOR,
         "note": "generated sample site; truth/ is for evaluation only"}})
 

@@ -137,9 +137,16 @@ vec3 tree_color(vec3 p, vec3 n, float fp) {
 }
 
 vec3 gcp_color(vec2 uv) {
+    // checker quadrants in a white border, analytically anti-aliased over the pixel footprint
+    // so the centre (an X-corner) is where a camera integrating light would see it
     float h = GCP_HALF;
-    if (max(abs(uv.x), abs(uv.y)) > 0.82 * h) return vec3(0.95);          // white border
-    return (uv.x * uv.y > 0.0) ? vec3(0.05) : vec3(0.97);                   // checker quadrants
+    vec2 fw = max(fwidth(uv), vec2(1e-4));
+    float inner = clamp((0.82 * h - max(abs(uv.x), abs(uv.y))) / max(fw.x, fw.y) + 0.5, 0.0, 1.0);
+    float sx = clamp(uv.x / fw.x, -0.5, 0.5) * 2.0;
+    float sy = clamp(uv.y / fw.y, -0.5, 0.5) * 2.0;
+    float dark = 0.5 + 0.5 * sx * sy;                                       // 1 in the ++ and -- quadrants
+    vec3 checker = mix(vec3(0.97), vec3(0.05), dark);
+    return mix(vec3(0.95), checker, inner);
 }
 
 vec3 surface_color(vec3 p, vec3 n, vec2 uv, vec3 col, float mat) {
