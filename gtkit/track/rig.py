@@ -34,7 +34,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ..camera import Camera
+from ..camera import MODELS, Camera
 from ..conventions import index_to_pixel, rotation_angle_deg, rotmat_to_quat
 from ..errors import GtkitError
 from ..io.atomic import write_json
@@ -146,7 +146,6 @@ class RigCalibrationSettings:
     scale_search: tuple[float, ...] = (1.0, 0.7, 1.4, 0.5, 2.0)  # x nominal zoom->wide scale, tried in order
     max_pairs: int = 40                # pairs used (evenly spread over all pairs found)
     offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # zoom centre in the wide frame (spec)
-    estimate_distortion: bool = False  # zoom distortion is kept at its nominal value
 
 
 def _gray(img):
@@ -258,7 +257,7 @@ def fit_rig(obs: list[PairObs], wide: Camera, zoom_init: list[ZoomSetting], R_in
     for g, z in enumerate(zoom_init):
         c = z.camera
         params = list(c.params)
-        names = __import__("gtkit.camera", fromlist=["MODELS"]).MODELS[c.model]
+        names = MODELS[c.model]
         for i, nme in enumerate(names):
             if nme in ("f", "fx"):
                 params[i] = f[g]
