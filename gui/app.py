@@ -2,7 +2,7 @@
 
 ``GTKIT_GUI_SCRIPT=actions.json`` drives the window with real mouse and key events (tests,
 demos): a list of ``{"click": "query"|"reference", "x": .., "y": ..}``, ``{"key": "Ctrl+Z"}``,
-``{"pair": [query, reference]}`` or ``{"wait": ms}``. After each action the app prints one line
+``{"pair": [query, reference]}``, ``{"wait": ms}`` or ``{"quit": true}``. After each action the app prints one line
 ``DONE <json>`` (with the tie point it committed), flushed, so a driver can kill it at any point.
 """
 from __future__ import annotations

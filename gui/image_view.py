@@ -192,10 +192,10 @@ class ImageView(QGraphicsView):
             m = Marker(self, key, x, y, kind, label, movable)
             self.scene().addItem(m)
             self.markers[key] = m
-        else:
-            m.setPos(x, y)
+        elif (m.x(), m.y(), m.kind, m.label) != (x, y, kind, label):  # untouched markers cost nothing
+            if (m.x(), m.y()) != (x, y):
+                m.setPos(x, y)
             m.kind, m.label = kind, label
-            m.setFlag(QGraphicsItem.GraphicsItemFlag.ItemIsMovable, movable)
             m.setZValue(10 if kind in ("active", "suggestion_current") else 5)
             m.update()
         return m

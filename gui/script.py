@@ -53,6 +53,13 @@ def run_action(w, a: dict) -> dict:
         seq = QKeySequence(a["key"])[0]
         QTest.keyClick(w, seq.key(), seq.keyboardModifiers())
         return {"action": a, "undo_index": page.undo.index(), "n_tiepoints": len(page.store)}
+    if a.get("quit"):
+        from PySide6.QtCore import QTimer
+        from PySide6.QtWidgets import QApplication
+
+        w.close()
+        QTimer.singleShot(0, QApplication.instance().quit)
+        return {"action": a}
     if "pair" in a:
         page.set_pair(*a["pair"])
         return {"action": a, "query": page.query, "reference": page.reference}

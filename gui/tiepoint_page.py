@@ -324,15 +324,24 @@ class TiePointPage(QWidget):
         self._fill_tree()
 
     def _fill_tree(self):
-        self.tp_tree.setCurrentItem(None)  # else clear() re-selects item after item: quadratic
-        self.tp_tree.clear()
         if not self.query:
+            self.tp_tree.clear()
             return
         rows = []
         for tp, _o in self.store.in_image(self.query):
             r = self.residuals.get(tp.id)
             rows.append((-(r.residual_px if r else -1.0), tp.id, r, len(tp.observations)))
         rows.sort()
+        key = [(r[1], r[3], None if r[2] is None else r[2].residual_px) for r in rows]
+        if key == getattr(self, "_tree_key", None):  # same rows: only the selection moves
+            for i in range(self.tp_tree.topLevelItemCount()):
+                it = self.tp_tree.topLevelItem(i)
+                if it.data(0, ROLE) == self.active:
+                    self.tp_tree.setCurrentItem(it)
+            return
+        self._tree_key = key
+        self.tp_tree.setCurrentItem(None)  # else clear() re-selects item after item: quadratic
+        self.tp_tree.clear()
         items = []
         for _k, tp_id, r, n in rows:
             it = QTreeWidgetItem([tp_id, "" if r is None else f"{r.residual_px:.2f}", str(n)])

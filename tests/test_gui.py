@@ -315,3 +315,16 @@ def test_qt_binding_keeps_none_alive():
     for _ in range(2000):
         p.setX(1.0)
     assert sys.getrefcount(None) - before > -100
+
+
+def test_gtkit_annotate_command_opens_the_gui(demo, tmp_path):
+    script = tmp_path / "a.json"
+    script.write_text(json.dumps([{"click": "query", "x": 100.0, "y": 80.0}, {"quit": True}]))
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen", GTKIT_GUI_SCRIPT=str(script), PYTHONPATH=str(ROOT))
+    r = subprocess.run([sys.executable, "-m", "gtkit.cli", "annotate", str(demo)], env=env, cwd=str(ROOT),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "FINISHED" in r.stdout or "DONE" in r.stdout
+    (tp,) = read_tiepoints(demo / "tiepoints.json")
+    assert tp.observations[0].image == Q0 and abs(tp.observations[0].x - 100) < 1.5
+    assert json.loads((demo / "work/annotate/session.json").read_text())["tiepoints"]["query"] == Q0

@@ -330,6 +330,12 @@ def default_pose_file(paths) -> Path | None:
     return next((p for p in pose_file_candidates(paths) if p.is_file()), None)
 
 
+def reference_block_pose_file(paths) -> Path | None:
+    """The reference block's SfM poses (``work/sfm_reference/poses.txt``), if they exist."""
+    p = paths.stage("sfm_reference") / "poses.txt"
+    return p if p.is_file() else None
+
+
 def intrinsics_for(paths, pose_file: Path | None) -> dict:
     """Intrinsics that go with a pose file: ``intrinsics.txt`` beside it, else ``cameras.txt``."""
     from ..io.poses import read_intrinsics
@@ -353,14 +359,20 @@ class OverlayScene:
         from ..io.poses import read_poses
         from .renderer import Renderer
 
-        P = project.paths
+        P = self.paths = project.paths
         self.project = project
         self.pose_file = Path(pose_file) if pose_file else default_pose_file(P)
         if self.pose_file is None:
             raise GtkitError("no poses to overlay: run `gtkit register` first or pass --poses FILE",
                              P.stage("register"))
-        self.poses = read_poses(self.pose_file)
-        self.cameras = intrinsics_for(P, self.pose_file)
+        self.poses, self.cameras = {}, {}
+        if pose_file is None and reference_block_pose_file(P) is not None:
+            # the register stage poses the queries; the reference photos come from their own block
+            ref = reference_block_pose_file(P)
+            self.poses.update(read_poses(ref))
+            self.cameras.update(intrinsics_for(P, ref))
+        self.poses.update(read_poses(self.pose_file))
+        self.cameras.update(intrinsics_for(P, self.pose_file))
         model_path = Path(model_path) if model_path else _find_model(P)
         self.model_path = model_path
         self.renderer = Renderer(load_model(model_path, project.frame))
