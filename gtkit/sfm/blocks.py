@@ -17,11 +17,11 @@ import pycolmap
 
 from ..camera import Camera
 from ..errors import GtkitError
-from ..io.atomic import write_json
+from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
 from ..io.odm import read_gcp_list, read_geo_txt
 from ..io.poses import read_intrinsics, write_intrinsics, write_poses
-from ..project import Project, file_fingerprint, mark_stage_done, stage_done
+from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
 from .database import (CameraGroup, FeatureSettings, MatchSettings, build_database, failure_reason,
                        image_diagnostics, match)
 from .geometry import RegistrationError, model_cameras, model_poses
@@ -39,7 +39,10 @@ class SfmSettings:
     features: FeatureSettings = field(default_factory=FeatureSettings)
     matching: MatchSettings = field(default_factory=MatchSettings)
     georegister: GeoregisterSettings = field(default_factory=GeoregisterSettings)
-    refine_intrinsics: str = "auto"   # auto: refine only cameras without a cameras.txt prior; yes; no
+    # auto: cameras.txt calibrations stay fixed; cameras without one (EXIF focal) get their distortion
+    # refined but keep the EXIF focal length (a flat, nadir-only block cannot tell focal length from
+    # flying height: the focal drifts and the ground moves up or down); yes: refine all; no: none
+    refine_intrinsics: str = "auto"
     query_pattern: str = "*_W.*"      # which photos of a query sequence form its block
     pair_by_footprint: bool = True    # spatial pairs by where photos look (gimbal), not where they were taken
     gps_prior_sigma_m: float = 5.0    # written with the CARTESIAN pose priors (used only for pairing)
@@ -111,14 +114,15 @@ def _inputs(project: Project, names: list[str]) -> dict:
             "geo_txt": file_fingerprint(P.geo_txt), "crs": [project.frame.crs_spec, list(project.frame.origin)]}
 
 
-def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, refine: bool) -> pycolmap.Reconstruction | None:
+def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, refine: bool,
+         refine_focal: bool) -> pycolmap.Reconstruction | None:
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = settings.num_threads
     opts.random_seed = 0
-    opts.ba_refine_focal_length = refine
+    opts.ba_refine_focal_length = refine_focal
     opts.ba_refine_extra_params = refine
     opts.ba_refine_principal_point = False
-    opts.mapper.abs_pose_refine_focal_length = refine
+    opts.mapper.abs_pose_refine_focal_length = refine_focal
     opts.mapper.abs_pose_refine_extra_params = refine
     opts.min_model_size = 3
     out.mkdir(parents=True, exist_ok=True)
@@ -144,22 +148,36 @@ def build_block(project: Project, names: list[str], out: Path, pairings: list[st
     look = pairing_positions(project, names, positions) if settings.pair_by_footprint else positions
     groups = camera_groups(project, names, look)
     db = out / "database.db"
-    build_database(db, P.images, groups, settings.features, settings.gps_prior_sigma_m)
+    # features + matches are reused when nothing that made them changed (mapping settings may)
+    db_key = settings_key({"features": settings_dict(settings.features), "matching": settings_dict(settings.matching),
+                           "pairings": pairings, "sigma": settings.gps_prior_sigma_m,
+                           "images": {n: file_fingerprint(P.images / n) for n in names},
+                           "groups": [[g.names, g.camera.to_line() if g.camera else None,
+                                       {n: [round(float(v), 3) for v in x] for n, x in g.positions.items()}]
+                                      for g in groups]})
+    key_file = out / "database.key"
+    reuse = db.is_file() and key_file.is_file() and key_file.read_text().strip() == db_key
+    if not reuse:
+        key_file.unlink(missing_ok=True)
+        build_database(db, P.images, groups, settings.features, settings.gps_prior_sigma_m)
     t_feat = time.time()
-    for p in pairings:
-        if p == "spatial" and len(positions) < 2:
-            continue
-        match(db, p, settings.matching)
+    if not reuse:
+        for p in pairings:
+            if p == "spatial" and len(positions) < 2:
+                continue
+            match(db, p, settings.matching)
+        write_text(key_file, db_key + "\n")
     t_match = time.time()
     refine = {"yes": True, "no": False}.get(settings.refine_intrinsics, any(g.camera is None for g in groups))
-    rec = _map(db, P.images, out / "mapper", settings, refine)
+    refine_focal = settings.refine_intrinsics == "yes"
+    rec = _map(db, P.images, out / "mapper", settings, refine, refine_focal)
     t_map = time.time()
     diag = image_diagnostics(db)
     registered = {im.name for im in rec.images.values() if im.has_pose} if rec else set()
     unregistered = {n: failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}),
                                       settings.matching.min_num_inliers) for n in names if n not in registered}
-    summary = {"block": label, "n_images": len(names), "n_registered": len(registered),
-               "unregistered": unregistered, "pairings": pairings, "refined_intrinsics": refine,
+    summary = {"block": label, "reused_database": reuse, "n_images": len(names), "n_registered": len(registered),
+               "unregistered": unregistered, "pairings": pairings, "refined_distortion": refine, "refined_focal": refine_focal,
                "n_cameras": len(groups), "n_gps": len(positions)}
     if rec is None:
         summary["error"] = "the mapper reconstructed nothing (no initial pair found)"
