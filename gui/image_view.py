@@ -267,6 +267,12 @@ class ImageView(QGraphicsView):
         crop = self._source.copy(src).scaled(self.loupe.size(), Qt.AspectRatioMode.IgnoreAspectRatio,
                                              Qt.TransformationMode.FastTransformation)
         painter = QPainter(crop)
+        k = crop.width() / (2 * half)  # loupe px per scene px
+        x0, y0 = p.x() - half, p.y() - half
+        for m in self.markers.values():  # the markers under the loupe, at their exact positions
+            if x0 <= m.x() <= x0 + 2 * half and y0 <= m.y() <= y0 + 2 * half:
+                painter.setPen(QPen(COLORS.get(m.kind, COLORS["normal"]), 1.5))
+                painter.drawEllipse(QPointF((m.x() - x0) * k, (m.y() - y0) * k), 6.0, 6.0)
         painter.setPen(QPen(QColor(255, 230, 0), 1))
         c = crop.width() // 2
         painter.drawLine(c - 12, c, c - 3, c)

@@ -328,3 +328,23 @@ def test_gtkit_annotate_command_opens_the_gui(demo, tmp_path):
     (tp,) = read_tiepoints(demo / "tiepoints.json")
     assert tp.observations[0].image == Q0 and abs(tp.observations[0].x - 100) < 1.5
     assert json.loads((demo / "work/annotate/session.json").read_text())["tiepoints"]["query"] == Q0
+
+
+def test_reopening_restores_pair_active_point_and_view(qtbot, demo):
+    w = _window(qtbot, demo)
+    page = w.tiepoints
+    page.set_pair(Q1, "reference/R01_001_F.jpg")
+    _click(qtbot, page.qview, 250.0, 200.0)
+    page.qview.center_on(250.0, 200.0, zoom=3.0)
+    page.rview.center_on(100.0, 300.0, zoom=2.0)
+    active, qstate, rstate = page.active, page.qview.view_state(), page.rview.view_state()
+    w.close()  # closing writes the session (edits were already in tiepoints.json)
+    w2 = _window(qtbot, demo)
+    w2.restore_views()
+    p2 = w2.tiepoints
+    assert (p2.query, p2.reference, p2.active) == (Q1, "reference/R01_001_F.jpg", active)
+    for v, st in ((p2.qview, qstate), (p2.rview, rstate)):
+        got = v.view_state()
+        assert abs(got["zoom"] - st["zoom"]) < 1e-6
+        assert np.allclose(got["center"], st["center"], atol=2.0 / st["zoom"] + 0.5)
+    w2.close()
