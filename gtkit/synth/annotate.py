@@ -22,8 +22,9 @@ def visible(shot: Shot, depth: np.ndarray, X: np.ndarray, margin: float = 8.0, t
     uv, z, front = project(shot, X)
     ok = front & shot.camera.in_image(uv, margin)
     out = np.zeros(len(uv), bool)
+    f = shot.camera.width / depth.shape[1]        # depth maps may be stored subsampled
     if ok.any():
-        ij = np.floor(uv[ok]).astype(int)
+        ij = np.floor(uv[ok] / f).astype(int)
         d = depth[np.clip(ij[:, 1], 0, depth.shape[0] - 1), np.clip(ij[:, 0], 0, depth.shape[1] - 1)].astype(np.float64)
         out[ok] = np.isfinite(d) & (np.abs(d - z[ok]) < tol_rel * z[ok] + tol_abs)
     return out, uv
@@ -88,7 +89,12 @@ def tie_points(queries: list[tuple[Shot, np.ndarray, np.ndarray, np.ndarray]], r
         # reference views that see each candidate
         vis = np.zeros((len(X), len(ref_shots)), bool)
         ref_uv = np.zeros((len(X), len(ref_shots), 2))
-        for k, r in enumerate(ref_shots):
+        # only reference views near the clicked area can see it
+        reach = np.hypot(ref_centres[:, 0] - X[:, 0].mean(), ref_centres[:, 1] - X[:, 1].mean())
+        spread = np.hypot(*(X[:, :2].max(0) - X[:, :2].min(0)))
+        near = reach < spread + 3.0 * np.maximum(ref_centres[:, 2] - X[:, 2].min(), 1.0)
+        for k in np.flatnonzero(near):
+            r = ref_shots[k]
             vis[:, k], ref_uv[:, k] = visible(r, ref_depths[r.name], X, margin=10)
         nvis = vis.sum(1)
         order = rng.permutation(len(X))

@@ -137,6 +137,15 @@ def build_world(s: SynthSettings, rng: np.random.Generator) -> World:
                 else:
                     lx0, lx1, ly0, ly1 = x0, x1, a0 + 1.5, a1 - 1.5
                 _add_building(world, rng, ws, lx0, lx1, ly0, ly1)
+    # at least one tower near the tallest allowed height, nearest the town centre
+    town = [b for b in world.buildings if b.cx > world.town_x0]
+    if town and max(b.height for b in town) < 0.8 * ws.building_height_max:
+        tc = np.array([(world.town_x0 + half) / 2, y_main])
+        b = min(town, key=lambda b: (np.hypot(b.cx - tc[0], b.cy - tc[1]), b.cx))
+        b.w, b.d, b.roof = min(b.w, 26.0), min(b.d, 26.0), "flat"
+        zt = world.terrain_height(b.corners()[:, 0], b.corners()[:, 1])
+        b.base = float(zt.min() - 0.5)
+        b.height = float(zt.max() - b.base + rng.uniform(0.85, 1.0) * ws.building_height_max)
     # farm houses in the rural part
     for _ in range(ws.n_farm_houses * 20):
         if sum(b.roof == "gabled" and b.cx < world.town_x0 for b in world.buildings) >= ws.n_farm_houses:
