@@ -46,6 +46,8 @@ class SfmSettings:
     query_pattern: str = "*_W.*"      # which photos of a query sequence form its block
     pair_by_footprint: bool = True    # spatial pairs by where photos look (gimbal), not where they were taken
     gps_prior_sigma_m: float = 5.0    # written with the CARTESIAN pose priors (used only for pairing)
+    init_min_tri_angle_deg: float = 4.0  # mapper's initial pair (COLMAP: 16; short UAV baselines need less)
+    min_tri_angle_deg: float = 1.0       # triangulation/filtering (COLMAP: 1.5)
     num_threads: int = 2
 
 
@@ -125,6 +127,9 @@ def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, refine: b
     opts.mapper.abs_pose_refine_focal_length = refine_focal
     opts.mapper.abs_pose_refine_extra_params = refine
     opts.min_model_size = 3
+    opts.mapper.init_min_tri_angle = settings.init_min_tri_angle_deg
+    opts.mapper.filter_min_tri_angle = settings.min_tri_angle_deg
+    opts.triangulation.min_angle = settings.min_tri_angle_deg
     out.mkdir(parents=True, exist_ok=True)
     models = pycolmap.incremental_mapping(db, image_root, out, options=opts)
     if not models:
