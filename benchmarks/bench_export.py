@@ -1,7 +1,7 @@
 """Export times: DSM, orthophoto, mesh (obj/glb/ply, decimated) and coordinates.
 
     .venv/bin/python benchmarks/bench_export.py                       # synthetic small + medium, Brighton LAZ
-    .venv/bin/python benchmarks/bench_export.py --project site ...    # also sample projects (gtkit sample create)
+    .venv/bin/python benchmarks/bench_export.py --sample site         # also a sample project (left untouched)
 
 Synthetic projects: the analytic scene of tests/test_export.py (120 x 100 m, 4 buildings,
 512^2 texture) and a medium one (1 km x 1 km, 400 buildings, 200 x 200 terrain grid, 4096^2
@@ -109,8 +109,10 @@ def bench_project(name: str, proj: Project, rows: list):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--project", action="append", default=[], help="an existing project (copied is better: "
-                    "exports are written into it)")
+    ap.add_argument("--project", action="append", default=[], help="an existing project (exports are "
+                    "written into it)")
+    ap.add_argument("--sample", action="append", default=[], help="a sample project (gtkit sample create), "
+                    "left untouched: exports go to a scratch project sharing its model/")
     ap.add_argument("--no-medium", action="store_true")
     args = ap.parse_args()
     print(f"{'project':<26} {'step':<24} {'size':<28} {'seconds':>8}", flush=True)
@@ -125,6 +127,12 @@ def main():
             bench_project("synthetic-medium", proj, rows)
         for p in args.project:
             bench_project(Path(p).name, Project.load(p), rows)
+        for k, p in enumerate(args.sample):
+            from test_export_sample import scratch_project
+
+            proj = scratch_project(p, Path(tmp) / f"sample{k}")
+            (proj.paths.root / "truth").symlink_to(Path(p, "truth").resolve(), target_is_directory=True)
+            bench_project(f"sample:{Path(p).name}", proj, rows)
         laz = ROOT.parent / "shared" / "data" / "brighton_beach" / "model.laz"
         if laz.is_file():
             from gtkit.export import dsm
