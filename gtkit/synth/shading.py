@@ -37,6 +37,16 @@ vec2 planar(vec3 p, vec3 n) {
     if (a.x >= a.y) return vec2(p.y, p.z);
     return vec2(p.x, p.z);
 }
+// sparse blobs (stones, bushes, stains) of one size; fades out below the pixel footprint
+float blobs(vec2 q, float wl, float fp, float thr) {
+    float fade = clamp((wl / max(fp, 1e-4) - 2.0) * 0.5, 0.0, 1.0);
+    return fade * smoothstep(thr, thr + 0.06, vnoise(q / wl));
+}
+vec3 clutter(vec3 c, vec2 q, float fp, float k) {
+    float d = blobs(q + 31.7, 0.6, fp, 0.73) + blobs(q + 13.1, 1.4, fp, 0.75) + blobs(q - 7.7, 3.2, fp, 0.77);
+    float l = blobs(q + 5.3, 0.9, fp, 0.75) + blobs(q + 2.9, 2.2, fp, 0.78);
+    return c * (1.0 - k * 0.4 * min(d, 1.0)) + k * vec3(0.22, 0.20, 0.17) * min(l, 1.0);
+}
 float seg_dist(vec2 p, vec4 s, out float along) {
     vec2 d = s.zw - s.xy;
     float L = length(d);
@@ -61,7 +71,7 @@ vec3 terrain_color(vec3 p, float fp) {
         float dc = best + hw;                       // distance to the centre line
         vec3 c = vec3(0.30, 0.30, 0.32) * (0.75 + 0.5 * fine);
         float crack = fbm(q * 1.0, 0.5, 4, fp, 0.9);
-        c *= 0.9 + 0.2 * crack;
+        c = clutter(c * (0.9 + 0.2 * crack), q * 1.3, fp, 0.5);
         bool dash = dc < 0.12 && fract(along / 6.0) < 0.5;
         bool edge = best > -0.45 && best < -0.3;
         if (dash || edge) c = vec3(0.92, 0.92, 0.88) * (0.9 + 0.1 * fine);
@@ -85,7 +95,7 @@ vec3 terrain_color(vec3 p, float fp) {
         vec3 pave = vec3(0.62, 0.60, 0.56) * (0.8 + 0.4 * fine) * joint
                     * (0.9 + 0.2 * h12(floor(q / 0.6)));
         vec3 lawn = vec3(0.30, 0.45, 0.20) * (0.7 + 0.6 * fine);
-        return mix(pave, lawn, smoothstep(0.55, 0.6, grass)) * curb;
+        return clutter(mix(pave, lawn, smoothstep(0.55, 0.6, grass)) * curb, q, fp, 1.0);
     }
     // rural: fields with crop rows, grass margins
     vec2 cell = floor(q / FIELD + vec2(0.3, 0.7));
@@ -93,12 +103,12 @@ vec3 terrain_color(vec3 p, float fp) {
     float k = h12(cell + 3.7);
     float margin = min(min(fq.x, 1.0 - fq.x), min(fq.y, 1.0 - fq.y)) * FIELD;
     vec3 grass = vec3(0.33, 0.46, 0.21) * (0.65 + 0.7 * fine);
-    if (margin < 1.5 || k < 0.2) return grass * curb;
+    if (margin < 1.5 || k < 0.2) return clutter(grass * curb, q, fp, 1.0);
     vec3 crop = k < 0.45 ? vec3(0.55, 0.58, 0.25) : (k < 0.7 ? vec3(0.45, 0.36, 0.24) : vec3(0.26, 0.50, 0.22));
     float ang = h12(cell + 9.1) * 3.14159;
     float row = 0.5 + 0.5 * sin(dot(q, vec2(cos(ang), sin(ang))) * 6.2832 / 0.75);
     float rowfade = clamp((0.75 / max(fp, 1e-4) - 2.0) * 0.5, 0.0, 1.0);
-    return crop * (0.7 + 0.5 * fine) * (1.0 + 0.25 * rowfade * (row - 0.5));
+    return clutter(crop * (0.7 + 0.5 * fine) * (1.0 + 0.25 * rowfade * (row - 0.5)), q, fp, 0.8);
 }
 
 vec3 wall_color(vec3 p, vec3 n, vec2 uv, vec3 col, float fp) {
@@ -124,7 +134,7 @@ vec3 roof_color(vec3 p, vec2 uv, float fp, bool tiles) {
         float shade = (row < 0.15 || off < 0.06) && fp < 0.1 ? 0.7 : 1.0;
         return vec3(0.55, 0.25, 0.18) * (0.75 + 0.5 * fine) * shade;
     }
-    vec3 c = vec3(0.55, 0.55, 0.53) * (0.7 + 0.6 * fine);
+    vec3 c = clutter(vec3(0.55, 0.55, 0.53) * (0.7 + 0.6 * fine), uv, fp, 0.8);
     vec2 cell = floor(uv / 4.0);
     vec2 f = fract(uv / 4.0);
     if (h12(cell + 1.3) < 0.15 && max(abs(f.x - 0.5), abs(f.y - 0.5)) < 0.3) c = vec3(0.8, 0.8, 0.78) * (0.9 + 0.2 * fine);
