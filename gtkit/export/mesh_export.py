@@ -185,4 +185,8 @@ def decimate(mesh: Mesh, target_triangles: int) -> Mesh:
                 raise GtkitError(f"pymeshlab decimation failed on part {p.name or i}: {e}") from None
             for q in read_mesh_file(dst).parts:
                 parts.append(MeshPart(q.vertices + centre, q.faces, q.uv, q.texture, q.colors, None, p.name))
-    return Mesh(parts)
+    out = Mesh(parts)
+    if out.n_triangles > 1.2 * target_triangles:
+        log.warning("decimation stopped at %d triangles (asked %d): texture seams and small parts are kept",
+                    out.n_triangles, target_triangles)
+    return out
