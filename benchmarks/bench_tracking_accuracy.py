@@ -14,8 +14,8 @@ with the true zoom poses, 1 px noise), since the sample has no detector. Variant
                         N(0, sigma_rot) per axis on the rotation (labelled as such)
   localized, box        the localization stage's poses (--localized, default work/localize/poses.txt)
 
-The report of the last variant run stays as reports/tracking.json; every variant's report is
-reports/tracking_<variant>.json. Prints a table.
+reports/tracking.json (+ .png, .md) is the localized (else true-pose) box-centre variant; every
+variant's report is reports/tracking_<variant>.json. Prints a table.
 """
 from __future__ import annotations
 
@@ -95,14 +95,16 @@ def main():
         rows.append((name, rep["n_targets"], rep["n_failed"], rep["median_err_h_m"], rep["median_err_3d_m"],
                      rep["recall_h"]["1m"], rep["recall_h"]["3m"], rep["recall_h"]["5m"], sm.get("median_err_h_m"),
                      rep.get("median_sigma_h_m"), dt))
-    evaluate_tracking(P, tracks=P.exports / f"tracks_{variants[1][0]}.csv")  # reports/tracking.json
+    headline = "localized_box_centre" if loc.is_file() else "true_box_centre"
+    evaluate_tracking(P, tracks=P.exports / f"tracks_{headline}.csv", label=headline)  # reports/tracking.json
     print(f"\n{'variant':34s} {'n':>4s} {'fail':>4s} {'med h m':>8s} {'med 3d m':>8s} {'R@1m':>5s} {'R@3m':>5s} "
           f"{'R@5m':>5s} {'smooth h':>8s} {'sigma h':>7s} {'s':>6s}")
     for r in rows:
         f = lambda v: "-" if v is None else f"{v:.2f}"  # noqa: E731
         print(f"{r[0]:34s} {r[1]:4d} {r[2]:4d} {f(r[3]):>8s} {f(r[4]):>8s} {r[5]:5.2f} {r[6]:5.2f} {r[7]:5.2f} "
               f"{f(r[8]):>8s} {f(r[9]):>7s} {r[10]:6.1f}")
-    rr = evaluate_tracking(P, tracks=P.exports / f"tracks_{variants[1][0]}.csv", plot=False)["rig"]
+    rr = evaluate_tracking(P, tracks=P.exports / f"tracks_{headline}.csv", out=P.reports / "tracking_rig_check.json",
+                           plot=False)["rig"]
     if rr:
         print(f"\nrig vs truth: rotation error {rr['rotation_err_deg']:.4f} deg (true misalignment "
               f"{rr['rotation_true_deg']:.3f} deg), focal error {rr['focal_err_pct']:.3f} % (nominal was "
