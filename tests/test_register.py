@@ -2,6 +2,8 @@
 known cameras), measured against the true poses. Runs in seconds: no images, no SIFT."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pycolmap
 import pytest
@@ -10,11 +12,11 @@ from gtkit.camera import Camera
 from gtkit.conventions import dji_to_rotation
 from gtkit.evaluate.poses import medians, pose_errors
 from gtkit.geo import GeoFrame
-from gtkit.io.poses import read_covariances, read_poses
+from gtkit.io.poses import read_covariances, read_poses, write_poses
 from gtkit.io.tiepoints import Observation, TiePoint, write_tiepoints
 from gtkit.pose import Pose
 from gtkit.project import Project
-from gtkit.sfm import register
+from gtkit.sfm import register, report
 from gtkit.sfm.geometry import RegistrationError, robust_sim3, triangulate_clicks
 
 CLICK_NOISE = 0.5
@@ -38,20 +40,17 @@ def _model(cam: Camera, poses: dict[str, Pose], points=None, rng=None, noise_px=
     c = cam.to_pycolmap()
     c.camera_id = 1
     rec.add_camera_with_trivial_rig(c)
-    kps = {n: [] for n in poses}
-    tracks = []
-    for X in (points if points is not None else []):
-        tr = []
-        for k, (n, p) in enumerate(poses.items()):
-            uv, ok = _visible(cam, p, X[None])
-            if ok[0]:
-                tr.append((k + 1, len(kps[n])))
-                kps[n].append(uv[0] + rng.normal(0, noise_px, 2))
-        tracks.append(tr)
+    pts = np.zeros((0, 3)) if points is None else np.asarray(points)
+    tracks = [[] for _ in range(len(pts))]
     for k, (n, p) in enumerate(poses.items()):
-        im = pycolmap.Image(name=n, keypoints=np.array(kps[n]).reshape(-1, 2), camera_id=1, image_id=k + 1)
+        uv, ok = _visible(cam, p, pts)
+        idx = np.flatnonzero(ok)
+        kp = uv[idx] + (rng.normal(0, noise_px, (len(idx), 2)) if len(idx) else 0)
+        for j, i in enumerate(idx):
+            tracks[i].append((k + 1, j))
+        im = pycolmap.Image(name=n, keypoints=kp.reshape(-1, 2), camera_id=1, image_id=k + 1)
         rec.add_image_with_trivial_frame(im, p.to_pycolmap())
-    for X, tr in zip(points if points is not None else [], tracks):
+    for X, tr in zip(pts, tracks):
         if len(tr) >= 2:
             rec.add_point3D(X, pycolmap.Track([pycolmap.TrackElement(i, j) for i, j in tr]))
     return rec
@@ -118,6 +117,7 @@ def make_site(tmp_path, seed=0, mistakes=0.0, n_ties=20, seqs=("seq1",), tie_ove
                 if count >= per_image:
                     break
     write_tiepoints(P.tiepoints, tie_list)
+    write_poses(P.truth / "poses.txt", truth)
     return proj, truth, clicks_bad
 
 
@@ -156,6 +156,25 @@ def test_one_query_click_per_tiepoint(tmp_path):
     listed = set(res["bad_tiepoints"])
     assert len(bad & listed) >= 0.7 * len(bad), (bad, listed)
     assert res["median_tiepoint_reproj_px"] < 1.5
+
+
+def test_report_reads_truth_and_review(tmp_path):
+    proj, truth, _ = make_site(tmp_path, seed=6, seqs=("seq1", "seq2"), n_ties=12)
+    names = sorted(truth)
+    (proj.paths.review).write_text(json.dumps({names[0]: "accept", names[1]: "reject"}))
+    reg = register.run(proj)
+    rep = report.run(proj)
+    saved = json.loads((proj.paths.reports / "gt_report.json").read_text())
+    for k in ("median_reproj_px", "median_tiepoint_reproj_px", "n_registered", "n_images", "median_pos_err_m",
+              "median_rot_err_deg"):
+        assert saved[k] == rep[k] and saved[k] is not None, k
+    assert saved["n_registered"] == saved["n_images"] == 16 == reg["n_registered"]
+    est = read_poses(proj.paths.stage("register") / "poses.txt")
+    assert saved["median_pos_err_m"] == pytest.approx(medians(pose_errors(est, truth))["median_pos_err_m"])
+    assert saved["per_image"][names[0]]["review"] == "accept" and saved["review"]["reject"] == 1
+    assert "pos_err_m" in saved["per_image"][names[3]]
+    md = (proj.paths.reports / "gt_report.md").read_text()
+    assert "median position error vs truth" in md and (proj.paths.reports / "gt_pos_err.svg").is_file()
 
 
 def test_gross_click_mistakes_are_listed(tmp_path):
