@@ -69,20 +69,21 @@ class MutualNNRatioMatcher:
         self.ratio = ratio
 
     def match(self, a: Features, b: Features) -> np.ndarray:
-        import cv2
-
+        """One dense similarity matrix (BLAS) instead of a k-d tree or OpenCV's brute force:
+        RootSIFT vectors are unit length, so squared distance = 2 - 2 * similarity."""
         if len(a) < 2 or len(b) < 2:
             return np.zeros((0, 2), int)
-        da, db = rootsift(a.desc), rootsift(b.desc)
-        bf = cv2.BFMatcher(cv2.NORM_L2)
-        fwd = bf.knnMatch(da, db, k=2)
-        bwd = bf.match(db, da)
-        back = np.full(len(b), -1)
-        for m in bwd:
-            back[m.queryIdx] = m.trainIdx
-        out = [(m[0].queryIdx, m[0].trainIdx) for m in fwd
-               if len(m) == 2 and m[0].distance < self.ratio * m[1].distance and back[m[0].trainIdx] == m[0].queryIdx]
-        return np.array(out, dtype=int).reshape(-1, 2)
+        S = rootsift(a.desc) @ rootsift(b.desc).T
+        back = S.argmax(axis=0)                  # best a for every b (mutual check)
+        rows = np.arange(len(a))
+        j1 = S.argmax(axis=1)
+        s1 = S[rows, j1].copy()
+        S[rows, j1] = -np.inf
+        s2 = S.max(axis=1)
+        d1 = np.sqrt(np.maximum(2.0 - 2.0 * s1, 0.0))
+        d2 = np.sqrt(np.maximum(2.0 - 2.0 * s2, 0.0))
+        keep = (d1 < self.ratio * d2) & (back[j1] == rows)
+        return np.stack([rows[keep], j1[keep]], axis=1).astype(int)
 
 
 EXTRACTORS = {"sift": SiftExtractor}
