@@ -6,6 +6,11 @@ would open next; markers redrawn), time until the full resolution is shown after
 (background decode), and time for one click to be saved (tiepoints.json rewritten atomically).
 
     QT_QPA_PLATFORM=offscreen python benchmarks/bench_gui.py [--keep DIR]
+
+With ``--alignment SITE`` it instead prints the alignment measures (gtkit.render.overlay) of
+photos of a sample site at the true pose and at poses 1 m east / turned 1 degree:
+
+    python benchmarks/bench_gui.py --alignment sample_site [--every 4]
 """
 from __future__ import annotations
 
@@ -21,12 +26,46 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+def alignment_table(site: Path, every: int):
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from gtkit.pose import Pose
+    from gtkit.project import Project
+    from gtkit.render.overlay import OverlayScene, alignment
+
+    scene = OverlayScene(Project.load(site), site / "truth" / "poses.txt")
+    names = scene.images()
+    picks = [n for n in names if n.startswith("queries/")][::every] + [n for n in names if n.startswith("reference/")][::4 * every]
+    rows = []
+    print(f"{'image':34s} {'misalignment px: true / 1 m / 1 deg':>38s} {'edge distance px: true / 1 m / 1 deg':>38s}")
+    for name in picks:
+        photo, _, _, s = scene.render(name)
+        p = scene.poses[name]
+        R1 = Rotation.from_rotvec(np.radians(1.0) * np.array([0.0, 1.0, 0.0])).as_matrix() @ p.R
+        res = []
+        for q in (p, Pose.from_center(p.R, p.center + [1.0, 0, 0]), Pose.from_center(R1, p.center)):
+            _, rgb, valid, _ = scene.render(name, pose=q)
+            res.append(alignment(photo, rgb, valid, scale=s))
+        rows.append([[a.misalignment_px for a in res], [a.edge_distance_px for a in res]])
+        m, e = rows[-1]
+        print(f"{name:34s} {m[0]:12.2f} {m[1]:8.2f} {m[2]:8.2f}       {e[0]:12.2f} {e[1]:8.2f} {e[2]:8.2f}", flush=True)
+    a = np.array(rows, dtype=float)
+    med = np.nanmedian(a, axis=0)
+    print(f"{'median of ' + str(len(rows)) + ' images':34s} {med[0][0]:12.2f} {med[0][1]:8.2f} {med[0][2]:8.2f}"
+          f"       {med[1][0]:12.2f} {med[1][1]:8.2f} {med[1][2]:8.2f}")
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--keep", help="build the project here and keep it")
     ap.add_argument("--n-query", type=int, default=4)
     ap.add_argument("--tiepoints", type=int, default=1000)
+    ap.add_argument("--alignment", help="print the alignment table for this sample site instead")
+    ap.add_argument("--every", type=int, default=4, help="with --alignment: every n-th query photo")
     a = ap.parse_args()
+    if a.alignment:
+        return alignment_table(Path(a.alignment), a.every)
     from gui.demo import make_demo_project
 
     root = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="gtkit_bench_gui_")) / "site"

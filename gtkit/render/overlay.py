@@ -15,7 +15,8 @@ rendered (eroded by a few pixels so the model's outline against empty background
 ``misalignment_px`` (the headline figure)
     The working image is cut into half-overlapping 96-px tiles; in each tile the shift that
     moves the render's gradient-magnitude image onto the photo's is found by phase
-    correlation (tiles without texture or without a confident peak are skipped). The
+    correlation (tiles without texture or without a confident peak are skipped; 48-px tiles
+    when fewer than 5 large ones fit where the model was drawn). The
     measure is the median length of these shifts: how far, typically, the render must move
     to sit on the photo. 0 = aligned; it grows linearly with the error up to half a tile.
 ``edge_distance_px``
@@ -274,6 +275,8 @@ def alignment(photo: np.ndarray, render: np.ndarray, valid: np.ndarray | None = 
     inner = _inner(v)
     r2p, p2r, n_r, n_p = edge_distance(photo, render, inner, sigma)
     sh = local_shifts(photo, render, _inner(v, 8), tile)
+    if len(sh) < 5:  # the model covers little of the photo: smaller tiles fit inside it
+        sh = local_shifts(photo, render, _inner(v, 8), tile // 2)
     mis = float(np.median(np.hypot(sh[:, 0], sh[:, 1]))) / scale if len(sh) else float("nan")
     return Alignment(mis, 0.5 * (r2p + p2r) / scale, r2p / scale, p2r / scale, len(sh), n_r, n_p,
                      float(v.mean()), scale)
