@@ -91,10 +91,7 @@ class Rig:
         best = min(known, key=lambda s: abs(s.focal_mm - focal_mm))
         if abs(best.focal_mm - focal_mm) < 1e-3:
             return best.camera
-        r = focal_mm / best.focal_mm
-        c = best.camera
-        p = dict(zip(("fx", "fy", "cx", "cy"), (c.fx, c.fy, c.cx, c.cy)))
-        return Camera.pinhole(c.width, c.height, p["fx"] * r, p["fy"] * r, p["cx"], p["cy"])
+        return with_focal(best.camera, best.camera.fx * focal_mm / best.focal_mm)
 
     # --- file --------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -133,6 +130,13 @@ class Rig:
                        d.get("calibration", {}))
         except (json.JSONDecodeError, KeyError, ValueError, TypeError, IndexError, GtkitError) as e:
             raise GtkitError(f"invalid rig file ({e})", path) from None
+
+
+def with_focal(c: Camera, fx: float) -> Camera:
+    """The same camera (model, principal point, distortion, aspect) with focal length ``fx``."""
+    k = fx / c.fx
+    params = [v * k if name in ("f", "fx", "fy") else v for name, v in zip(MODELS[c.model], c.params)]
+    return Camera(c.model, c.width, c.height, tuple(params))
 
 
 # --- matching -----------------------------------------------------------------------------
@@ -253,17 +257,7 @@ def fit_rig(obs: list[PairObs], wide: Camera, zoom_init: list[ZoomSetting], R_in
     err = np.linalg.norm(res, axis=1)
     R = Rotation.from_rotvec(sol.x[:3]).as_matrix()
     f = f0 * np.exp(sol.x[3:3 + ng])
-    settings = []
-    for g, z in enumerate(zoom_init):
-        c = z.camera
-        params = list(c.params)
-        names = MODELS[c.model]
-        for i, nme in enumerate(names):
-            if nme in ("f", "fx"):
-                params[i] = f[g]
-            elif nme == "fy":
-                params[i] = f[g] * aspect[g]
-        settings.append(ZoomSetting(Camera(c.model, c.width, c.height, tuple(params)), z.focal_mm))
+    settings = [ZoomSetting(with_focal(z.camera, f[g]), z.focal_mm) for g, z in enumerate(zoom_init)]
     # uncertainty of the estimate from the Gauss-Newton normal matrix at the inliers
     inl = err < 3.0
     sigma = {}
@@ -335,11 +329,7 @@ def calibrate_pairs(pairs, wide_cams, zoom_init: list[ZoomSetting], zoom_group, 
     wide_cam = wide_cams[pairs[0][0]]
     init = []
     for g, z in enumerate(zoom_init):
-        c = z.camera
-        if g in scale_hint:
-            f = wide_cam.fx / scale_hint[g]
-            c = Camera.pinhole(c.width, c.height, f, f * c.fy / c.fx, c.cx, c.cy) if c.model in (
-                "PINHOLE", "SIMPLE_PINHOLE") else c
+        c = with_focal(z.camera, wide_cam.fx / scale_hint[g]) if g in scale_hint else z.camera
         init.append(ZoomSetting(c, z.focal_mm))
     # all wide photos share one camera in a rig; use the per-photo ones only for the check above
     return fit_rig(obs, wide_cam, init, R0, settings.offset_m)
