@@ -269,7 +269,7 @@ def test_brighton_beach_laz_dsm_in_epsg32615(tmp_path):
         b = src.bounds
         assert 576661 <= b.left <= 576662.5 and 576767.5 <= b.right <= 576769
         assert 5188113 <= b.bottom <= 5188114.5 and 5188211.5 <= b.top <= 5188213
-        assert src.overviews(1)  # cloud-optimised: internal overviews
+        assert src.overviews(1) and src.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"  # cloud-optimised
         h = src.read(1, masked=True)
         assert 156.0 <= h.min() and h.max() <= 169.0
         assert 0.3 < (~h.mask).mean() < 0.5  # the flight's footprint covers ~40 % of its bounding box

@@ -26,6 +26,7 @@ def test_orthophoto_colours_and_georeference(project):
     out = ortho.run(project, ortho.OrthoSettings(cog=True))
     with rasterio.open(out) as src:
         assert src.crs.to_epsg() == 32650 and src.count == 4 and src.overviews(1)
+        assert src.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
         t = src.transform
         assert t.a == 0.25 and t.c == 500123.0 and t.f == 4000556.0  # texel 0.21 m -> 0.25 m cells
         rgba = src.read()
