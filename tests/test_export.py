@@ -317,3 +317,24 @@ def test_georeference_errors_name_the_file(tmp_path):
         las.x, las.y, las.z = np.array([1.0, 2.0]), np.array([1.0, 2.0]), np.array([0.0, 0.0])
         las.write(str(tmp_path / "nocrs.las"))
         dsm.run_file(tmp_path / "nocrs.las", tmp_path / "x.tif")
+
+
+def test_hole_filling_closes_holes_but_does_not_grow_the_border():
+    from gtkit.export.surface import fill_small_holes
+
+    h = np.full((20, 20), np.nan, np.float32)
+    h[5:15, 5:15] = 10.0
+    h[8:10, 9:11] = np.nan      # a 2 x 2 hole inside
+    out, _ = fill_small_holes(h, None, passes=2)
+    assert np.all(out[5:15, 5:15] == 10.0)                    # hole closed with its surroundings
+    assert np.isnan(out[4, 5:15]).all() and np.isnan(out[5:15, 15]).all()  # the border stays
+
+
+def test_grid_snaps_to_whole_cells_in_the_crs():
+    from gtkit.export.grid import Grid, nice_resolution
+
+    g = Grid.covering(0.3, 0.2, 10.1, 5.05, 0.5, origin=(100.25, 200.0, 0.0))
+    t = g.transform((100.25, 200.0, 0.0))
+    assert t.c % 0.5 == 0 and t.f % 0.5 == 0 and g.xmin <= 0.3 and g.xmax >= 10.1 and g.ymin <= 0.2
+    assert (nice_resolution(0.0912), nice_resolution(0.21), nice_resolution(0.43), nice_resolution(3.1)) == \
+        (0.1, 0.25, 0.5, 5.0)
