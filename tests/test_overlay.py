@@ -10,7 +10,6 @@ from scipy.spatial.transform import Rotation
 from gtkit.cli import main as cli_main
 from gtkit.errors import GtkitError
 from gtkit.pose import Pose
-from gtkit.project import Project
 from gtkit.render import overlay as ov
 from gtkit.review import read_review, set_status, summary
 
