@@ -185,7 +185,10 @@ def write_obj(path: str | Path, mesh: Mesh, texture_format: str = "jpg") -> Path
     lines = [f"mtllib {mtl_name}"]
     mtl = []
     vo = to = 0
-    for i, p in enumerate(mesh.parts):
+    # textured parts first: trimesh's OBJ reader drops the uv of a textured part that follows
+    # an untextured one in the same file
+    ordered = sorted(mesh.parts, key=lambda p: not (p.uv is not None and p.texture is not None))
+    for i, p in enumerate(ordered):
         mat = f"material_{i:03d}"
         lines.append(f"o {p.name or mat}")
         lines += [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in p.vertices]
