@@ -2,12 +2,14 @@
 
 The checks run on the ``tiny`` preset (sample_projects/tiny.toml, same world design as
 ``small`` with fewer and smaller photos) so the whole file stays within about two minutes;
+``GTKIT_SYNTH_PRESET=small pytest tests/test_synth.py`` runs the same checks on ``small``.
 ``benchmarks/bench_synth.py`` measures ``small`` and ``medium``.
 """
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -28,10 +30,13 @@ def _hashes(root: Path) -> dict[str, str]:
             for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+PRESET = os.environ.get("GTKIT_SYNTH_PRESET", "tiny")
+
+
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth") / "site"
-    s = load_preset("tiny")
+    s = load_preset(PRESET)
     summary = create_sample(root, s, quiet=True)
     return root, s, summary
 
@@ -56,7 +61,7 @@ def test_layout_complete(site):
 def test_same_seed_byte_identical(site, tmp_path):
     root, s, _ = site
     again = tmp_path / "again"
-    create_sample(again, load_preset("tiny"), quiet=True)
+    create_sample(again, load_preset(PRESET), quiet=True)
     a, b = _hashes(root), _hashes(again)
     assert a.keys() == b.keys()
     assert [k for k in a if a[k] != b[k]] == []
