@@ -62,7 +62,9 @@ def run(project: Project | str | Path, settings: ReportSettings | None = None) -
     ref = _load(P.stage(REFERENCE_STAGE) / "block.json")
     qsum = _load(P.stage(QUERIES_STAGE) / "summary.json") or {}
     reg = _load(P.stage(REGISTER_STAGE) / "registration.json")
-    review = _load(P.review) or {}
+    from ..review import read_review  # review.json as the annotator writes it (gtkit.review)
+
+    review = {n: r["status"] for n, r in read_review(P.review).items()}  # image -> accept|reject|needs-work
     rep: dict = {"project": project.name, "reference_block": ref, "query_blocks": qsum}
     est = {}
     if reg:
