@@ -138,7 +138,8 @@ def read_mesh_file(path: str | Path) -> Mesh:
         geoms = []
         for node in loaded.graph.nodes_geometry:
             T, gname = loaded.graph[node]
-            geoms.append((gname, loaded.geometry[gname].copy().apply_transform(T)))
+            g = loaded.geometry[gname]
+            geoms.append((gname, g if np.allclose(T, np.eye(4)) else g.copy().apply_transform(T)))
     else:
         geoms = [(path.stem, loaded)]
     mesh = Mesh([_part_from_trimesh(g, n) for n, g in geoms
