@@ -8,7 +8,8 @@ Format (``Paths.review``, written atomically after every change)::
                                             "misalignment_px": 0.4}}}
 
 ``status`` is one of :data:`STATUSES`. Image names are relative to ``images/``. The report
-stage reads it with :func:`read_review`; the GUI writes it with :func:`set_status`.
+stage reads it with :func:`read_review`; the GUI writes it with :func:`set_status`. A plain
+``{"image": "accept", ...}`` mapping (hand-written) is read too.
 """
 from __future__ import annotations
 
@@ -33,6 +34,10 @@ def read_review(path: str | Path) -> dict[str, dict]:
         d = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as e:
         raise GtkitError(f"not valid JSON ({e})", path) from None
+    if not isinstance(d, dict):
+        raise GtkitError("not a gtkit review file (expected a JSON object)", path)
+    if "format" not in d and d and all(isinstance(v, str) for v in d.values()):
+        d = {"format": FORMAT, "images": {k: {"status": v} for k, v in d.items()}}  # plain {image: status}
     if d.get("format") != FORMAT:
         raise GtkitError(f"not a gtkit review file (format {d.get('format')!r})", path)
     images = d.get("images", {})

@@ -79,6 +79,8 @@ def test_review_file_roundtrip_and_errors(tmp_path):
     assert list(read_review(f)) == ["queries/a.jpg"]
     with pytest.raises(GtkitError):
         set_status(f, "x.jpg", "maybe")
+    f.write_text('{"a.jpg": "accept", "b.jpg": "needs-work"}')  # a plain hand-written mapping
+    assert {k: v["status"] for k, v in read_review(f).items()} == {"a.jpg": "accept", "b.jpg": "needs-work"}
     f.write_text('{"format": "gtkit-review", "images": {"a": {"status": "meh"}}}')
     with pytest.raises(GtkitError, match="review.json"):
         read_review(f)
