@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from gtkit.cli import main as cli_main
 from gtkit.errors import GtkitError
 from gtkit.pose import Pose
+from gtkit.project import Project
 from gtkit.render import overlay as ov
 from gtkit.review import read_review, set_status, summary
 
@@ -101,3 +102,20 @@ def test_gtkit_overlay_command_writes_pngs_and_measures(demo, tmp_path, capsys):
     # without poses: a clear one-line error naming where the poses were expected
     assert cli_main(["overlay", str(demo.paths.root)]) == 2
     assert "register" in capsys.readouterr().err
+
+
+def test_default_poses_are_the_register_stage_plus_reference_block(demo, tmp_path):
+    import shutil
+
+    from gtkit.io.poses import read_intrinsics, read_poses, write_intrinsics, write_poses
+
+    root = tmp_path / "site"
+    shutil.copytree(demo.paths.root, root)
+    poses, cams = read_poses(root / "truth/poses.txt"), read_intrinsics(root / "truth/intrinsics.txt")
+    for stage, prefix in (("register", "queries/"), ("sfm_reference", "reference/")):
+        sel = {n: p for n, p in poses.items() if n.startswith(prefix)}
+        write_poses(root / "work" / stage / "poses.txt", sel)
+        write_intrinsics(root / "work" / stage / "intrinsics.txt", {n: cams[n] for n in sel})
+    scene = ov.OverlayScene(Project.load(root))
+    assert scene.pose_file == root / "work/register/poses.txt"
+    assert set(scene.images()) == set(poses)
