@@ -97,3 +97,28 @@ def test_reads_a_real_dsm_geotiff_in_the_project_frame(tmp_path):
     r = cast_rays(dsm, [[55.0, 50.0, 100.0], [5.0, 5.0, 100.0]], [0, 0, -1])
     assert list(r.status) == [HIT, HIT]
     assert abs(r.points[0, 2] - 40.0) < 0.02 and abs(r.points[1, 2] - 10.0) < 0.02
+
+
+def test_free_space_skipping_changes_nothing():
+    """Random rays over a town of random blocks: same statuses and crossings with and without the
+    block-max skipping (which only jumps over provably empty segments)."""
+    rng = np.random.default_rng(5)
+
+    def town(x, y):
+        h = 2.0 * np.sin(x / 15.0) + 0.05 * y
+        for _ in range(60):
+            cx, cy, w, d, ht = *rng.uniform(-90, 90, 2), *rng.uniform(3, 15, 2), rng.uniform(3, 40)
+            h = np.where((np.abs(x - cx) < w / 2) & (np.abs(y - cy) < d / 2), h + ht, h)
+        h[(x > 60) & (y > 60)] = np.nan  # a hole without data
+        return h
+
+    g = _grid(town, cell=0.5)
+    n = 3000
+    el = np.radians(rng.uniform(2, 89, n))
+    az = rng.uniform(0, 2 * np.pi, n)
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)])
+    o = np.column_stack([rng.uniform(-100, 100, (n, 2)), rng.uniform(45, 150, n)])
+    fast, slow = cast_rays(g, o, d), cast_rays(g, o, d, skip=False)
+    assert (fast.status == slow.status).all()
+    ok = fast.ok
+    assert ok.sum() > 1000 and np.abs(fast.distance[ok] - slow.distance[ok]).max() < 0.02

@@ -4,12 +4,16 @@ A DSM is a 2.5D surface z = h(x, y). A ray ``p(s) = o + s d`` (``d`` unit, ``s``
 is above the surface while ``f(s) = p_z(s) - h(p_x(s), p_y(s)) > 0``. We march ``s`` from the
 ray's entry into the DSM's box in steps of at most half a cell, take the FIRST step where ``f``
 changes from > 0 to <= 0, and refine only inside that bracketing step by bisection down to
-``tol`` metres along the ray. A plain bisection over the whole ray could converge to any
-crossing (e.g. the ground behind a building); marching first cannot.
+``tol`` metres along the ray. Free space above the surface is skipped first with a block-max
+pyramid (8x8 cells, dilated by one block), which only skips segments that provably cannot
+cross the surface, so the result is the same as marching from the start. A plain bisection
+over the whole ray could converge to any crossing (e.g. the ground behind a building);
+marching first cannot.
 
 Heights come from the DSM reader of the export stage (:class:`gtkit.export.dsm.Dsm`,
 bilinear between cell centres); cells with no data (NaN) count as "no surface" (the ray may
-pass over them). This module adds the vectorised marcher (many rays at once) and the statuses. Every ray gets a status:
+pass over them). This module adds the vectorised marcher (many rays at once) and the
+statuses. Every ray gets a status:
 
 ``hit``        the first crossing was found (``point`` is finite);
 ``sky``        the ray does not descend and starts above every DSM height: it never meets it;
@@ -94,13 +98,14 @@ def _box_interval(o, d, lo, hi):
 
 
 def cast_rays(dsm, origins, directions, *, step: float | None = None, tol: float = 0.01,
-              max_distance: float = 20000.0, block: int = 64, chunk: int = 8192) -> RayHits:
+              max_distance: float = 20000.0, block: int = 64, chunk: int = 8192, skip: bool = True) -> RayHits:
     """First crossing of each ray with the DSM (a :class:`gtkit.export.dsm.Dsm`: its
     ``height_at`` sampler, ``heights`` and ``grid`` are used).
 
     ``step`` (metres along the ray) defaults to half the smaller cell size and is capped at it;
     ``tol`` is the bisection tolerance along the ray (default 1 cm). Rays are processed
-    ``chunk`` at a time, ``block`` steps per vectorised pass.
+    ``chunk`` at a time, ``block`` steps per vectorised pass. ``skip`` jumps over free space
+    with a block-max pyramid first (exact; off only to check that it is).
     """
     o = np.atleast_2d(np.asarray(origins, dtype=np.float64))
     d = np.atleast_2d(np.asarray(directions, dtype=np.float64))
@@ -111,13 +116,13 @@ def cast_rays(dsm, origins, directions, *, step: float | None = None, tol: float
     if not np.all(np.isfinite(o)) or not np.all(np.isfinite(d)) or np.any(norm == 0):
         raise GtkitError("ray origins/directions must be finite and directions non-zero")
     o, d = o.copy(), d / norm
-    parts = [_cast_chunk(dsm, o[i:i + chunk], d[i:i + chunk], step, tol, max_distance, block)
-             for i in range(0, len(o), chunk)] or [_cast_chunk(dsm, o, d, step, tol, max_distance, block)]
+    parts = [_cast_chunk(dsm, o[i:i + chunk], d[i:i + chunk], step, tol, max_distance, block, skip)
+             for i in range(0, len(o), chunk)] or [_cast_chunk(dsm, o, d, step, tol, max_distance, block, skip)]
     return RayHits(np.concatenate([p.points for p in parts]), np.concatenate([p.distance for p in parts]),
                    np.concatenate([p.status for p in parts]))
 
 
-def _cast_chunk(dsm, o, d, step, tol, max_distance, block) -> RayHits:
+def _cast_chunk(dsm, o, d, step, tol, max_distance, block, skip=True) -> RayHits:
     n = len(o)
     g = dsm.grid
     zmin, zmax = surface_range(dsm)
@@ -140,7 +145,9 @@ def _cast_chunk(dsm, o, d, step, tol, max_distance, block) -> RayHits:
 
     active = np.where(~below & ~sky & (s1 > s0))[0]
     if len(active):
-        s_prev = s0[active].copy()
+        # skip free space with the block-max pyramid (exact: only provably empty segments)
+        s_prev = (_coarse_start(dsm, o[active], d[active], s0[active], s1[active]) if skip
+                  else s0[active].copy())
         f_prev = _f(dsm, o[active], d[active], s_prev)
         # f_prev NaN (no data) counts as above the surface; starting in the box but under the
         # surface is the "starts below" case handled above, or a hit right at s0
@@ -175,6 +182,61 @@ def _cast_chunk(dsm, o, d, step, tol, max_distance, block) -> RayHits:
             s_prev = s[:, -1][~done]
             active = active[~done]
     return RayHits(pts, dist, status)
+
+
+SKIP_BLOCK = 8  # cells per side of the free-space skipping blocks
+
+
+def _block_max(dsm):
+    """(max height over each SKIP_BLOCK x SKIP_BLOCK block, dilated by one block; -inf = empty),
+    cached on the DSM object."""
+    cached = getattr(dsm, "_gtkit_track_blockmax", None)
+    if cached is not None:
+        return cached
+    from scipy.ndimage import maximum_filter
+
+    B = SKIP_BLOCK
+    h = np.where(np.isfinite(dsm.heights), dsm.heights, -np.inf)
+    H, W = h.shape
+    hp = np.full((-(-H // B) * B, -(-W // B) * B), -np.inf)
+    hp[:H, :W] = h
+    m = hp.reshape(hp.shape[0] // B, B, hp.shape[1] // B, B).max(axis=(1, 3))
+    m = maximum_filter(m, size=3, mode="constant", cval=-np.inf)
+    dsm._gtkit_track_blockmax = m
+    return m
+
+
+def _coarse_start(dsm, o, d, s0, s1, K: int = 32):
+    """Per ray, the s from which the fine march must run: the start of the first segment that is
+    not provably above the surface. A segment from s_k to s_k + (B-1)*res moves less than one
+    block (B cells) horizontally, so every height sampled under it (bilinear, from cells within
+    one cell of the point) is bounded by the block max at s_k dilated by one block; if the ray
+    stays above that bound the segment cannot cross the surface."""
+    g = dsm.grid
+    M = _block_max(dsm)
+    blen = SKIP_BLOCK * g.res
+    seg = (SKIP_BLOCK - 1) * g.res
+    nbi, nbj = M.shape
+    start = s0.copy()
+    cur = s0.copy()
+    todo = np.arange(len(o))
+    ks = np.arange(0, K + 1, dtype=np.float64)
+    while len(todo):
+        sk = np.minimum(cur[todo, None] + seg * ks[None, :], s1[todo, None])  # (m, K+1)
+        P = o[todo, None, :] + sk[..., None] * d[todo, None, :]
+        bi = np.floor((g.ymax - P[..., 1]) / blen).astype(np.int64)
+        bj = np.floor((P[..., 0] - g.xmin) / blen).astype(np.int64)
+        inside = (bi >= 0) & (bi < nbi) & (bj >= 0) & (bj < nbj)
+        m = np.where(inside, M[np.clip(bi, 0, nbi - 1), np.clip(bj, 0, nbj - 1)], -np.inf)
+        z = P[..., 2]
+        safe = np.minimum(z[:, :-1], z[:, 1:]) > m[:, :-1]
+        unsafe = ~safe.all(axis=1)
+        first = np.where(unsafe, (~safe).argmax(axis=1), K)
+        start[todo] = sk[np.arange(len(todo)), first]
+        cont = ~unsafe & (sk[:, -1] < s1[todo] - 1e-9)
+        cur[todo[cont]] = sk[cont, -1]
+        todo = todo[cont]
+    return start
 
 
 def _f(dsm, o, d, s):
