@@ -126,6 +126,17 @@ def test_track_stage_places_targets_and_reports_misses(project):
     assert rep["rig"]["rotation_err_deg"] < 1e-6 and abs(rep["rig"]["focal_err_pct"]) < 1e-9
     assert (P.reports / "tracking.png").stat().st_size > 10_000
     assert main(["evaluate", str(P.root), "--what", "tracking"]) == 0  # the shared evaluate command
+    # a pose covariance file beside the poses is used: 2 m per axis on one pose, viewed 45 deg down ->
+    # horizontal variance 4 (across) + 4 + 4 (along: the height error slides the point) -> sigma 3.46 m
+    from gtkit.io.poses import write_covariances
+
+    write_covariances(P.stage("localize") / "covariances.txt",
+                      {"queries/seq1/0001_W.jpg": np.diag([1e-10] * 3 + [4.0] * 3)})
+    run(proj, TrackSettings(smooth=False))
+    rows = {r["image"]: r for r in _read(P.tracks)}
+    assert 3.1 < float(rows["queries/seq1/0001_Z.jpg"]["sigma_h_m"]) < 3.8
+    assert float(rows["queries/seq1/0000_Z.jpg"]["sigma_h_m"]) < 2.0  # the others keep the default sigmas
+    (P.stage("localize") / "covariances.txt").unlink()
     # a box around the image of a 1.5 m tall car's centre: cast at half its height above the DSM,
     # the ground point below is the footprint centre (the default foot point); the bottom centre is off
     name, X = "queries/seq1/0002_Z.jpg", truth["queries/seq1/0002_Z.jpg"]
