@@ -5,9 +5,7 @@ part, simulated timestamps only, sorted outputs, atomic writes).
 """
 from __future__ import annotations
 
-import json
 import logging
-import struct
 import time
 from pathlib import Path
 
@@ -38,7 +36,7 @@ def _rng(seed: int, stream: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), stream])
 
 
-def _bar(desc: str, total: int, quiet: bool):
+def _bar(desc: str, total: int | None, quiet: bool):
     return tqdm(total=total, desc=desc, unit="img" if "photo" in desc else "it", disable=quiet, leave=False)
 
 
@@ -134,7 +132,7 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
 
     # --- reference model ----------------------------------------------------------------------
     t = time.perf_counter()
-    with _bar("reference model", 0, quiet) as bar:
+    with _bar("reference model (textures)", None, quiet) as bar:
         model = reference_model(world, s, glsl, _rng(s.seed, 6), progress=bar)
     off = np.floor(np.asarray(frame.origin) / s.model.offset_round_m) * s.model.offset_round_m
     off[2] = 0.0
@@ -178,6 +176,7 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
     world_r.release()
     target_r.release()
     timings["total"] = time.perf_counter() - t0
+    log.debug("sample %s (seed %d) written to %s in %.1f s", s.preset, s.seed, root, timings["total"])
     return {"root": str(root), "n_reference": len(ref), "n_query": len(qshots), "n_gcp_clicks": len(clicks),
             "n_tiepoints": len(tps), "timings_s": timings}
 
@@ -227,7 +226,3 @@ def write_targets_csv(path: Path, tracks, world, frame, qshots, s: SynthSettings
             rows.append(f"{name},{t:.2f},{stamp},{p[0]:.4f},{p[1]:.4f},{p[2]:.4f},{c[0]:.4f},{c[1]:.4f},"
                         f"{c[2]:.4f},{g[0]:.9f},{g[1]:.9f}")
     return write_text(path, "\n".join(rows) + "\n")
-
-
-def summary_json(summary: dict) -> str:
-    return json.dumps(summary, indent=1, default=float)
