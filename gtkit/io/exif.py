@@ -162,8 +162,11 @@ def dji_xmp_packet(tags: dict[str, float], extra: dict[str, str] | None = None) 
 def write_jpeg_with_meta(path: str | Path, rgb, *, lat: float | None = None, lon: float | None = None,
                          alt: float | None = None, dji: dict[str, float] | None = None,
                          timestamp: str | None = None, make: str = "DJI", model: str | None = None,
-                         focal_mm: float | None = None, quality: int = 92) -> Path:
+                         focal_mm: float | None = None, quality: int = 92,
+                         focal_35mm: float | None = None) -> Path:
     """Write an RGB uint8 array as a JPEG with EXIF GPS and DJI XMP tags, atomically."""
+    from PIL.TiffImagePlugin import IFDRational
+
     from .atomic import atomic_path
 
     im = Image.fromarray(rgb)
@@ -175,7 +178,10 @@ def write_jpeg_with_meta(path: str | Path, rgb, *, lat: float | None = None, lon
         exif[0x0132] = timestamp
         exif.get_ifd(0x8769)[0x9003] = timestamp
     if focal_mm:
-        exif.get_ifd(0x8769)[0x920A] = Fraction(focal_mm).limit_denominator(1000)
+        # a bare Fraction in the Exif sub-IFD makes Pillow fail on save; IFDRational works
+        exif.get_ifd(0x8769)[0x920A] = IFDRational(Fraction(focal_mm).limit_denominator(1000))
+    if focal_35mm:
+        exif.get_ifd(0x8769)[0xA405] = int(round(focal_35mm))
     if lat is not None and lon is not None:
         g = exif.get_ifd(_GPS_IFD)
         g[0] = b"\x02\x03\x00\x00"
