@@ -105,6 +105,7 @@ def test_metadata_reader_recovers_priors(site):
     root, s, _ = site
     proj = Project.load(root)
     poses = read_poses(root / "truth/poses.txt")
+    cams = read_intrinsics(root / "cameras.txt")
     groups = {"reference": (s.reference.gps_sigma_m, s.reference.angle_sigma_deg),
               "queries": (s.queries.gps_sigma_m, s.queries.angle_sigma_deg)}
     for prefix, (gsig, asig) in groups.items():
@@ -119,6 +120,8 @@ def test_metadata_reader_recovers_priors(site):
             if p > -89.0:  # at nadir yaw/roll are not separable
                 dang.append([wrap_deg(m.gimbal_yaw - y), m.gimbal_pitch - p, wrap_deg(m.gimbal_roll - r)])
             assert abs(m.gps_alt - m.abs_alt) < 0.01
+            cam = cams[name]   # EXIF focal length (35 mm equivalent) agrees with the camera file
+            assert abs(m.focal_35mm - cam.fx * 36.0 / cam.width) <= 0.5 and m.focal_mm > 0
         dpos, dang = np.array(dpos), np.array(dang)
         assert np.abs(dpos[:, :2]).max() < 5 * gsig + 1e-3, (prefix, np.abs(dpos).max(0))
         assert np.abs(dang).max() < 5 * asig + 0.01, (prefix, np.abs(dang).max(0))

@@ -80,7 +80,8 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
             meta = photos.photo_meta(frame, sh.pose, sh.flight_yaw, takeoff_z, rng_meta, gps_sigma=rs.gps_sigma_m,
                                      alt_sigma=rs.gps_sigma_m * 1.5, angle_sigma=rs.angle_sigma_deg, gps=True)
             photos.write_photo(paths.images / sh.name, img, meta, timestamp=photos.exif_time(rs.date, sh.time_s),
-                               model=MODEL_NAMES["reference"], focal_mm=_focal_mm(sh), quality=rs.jpeg_quality)
+                               model=MODEL_NAMES["reference"], camera=sh.camera,
+                               sensor_width_mm=photos.SENSOR_WIDTH_MM[sh.kind], quality=rs.jpeg_quality)
             bar.update(1)
     timings["reference_photos"] = time.perf_counter() - t
 
@@ -117,7 +118,8 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
                     alt_sigma=qs.alt_sigma_m, angle_sigma=qs.angle_sigma_deg, gps=not s.gps_denied)
             photos.write_photo(paths.images / sh.name, img, meta_by_base[base],
                                timestamp=photos.exif_time(qs.date, sh.time_s), model=MODEL_NAMES[sh.kind],
-                               focal_mm=_focal_mm(sh), quality=qs.jpeg_quality)
+                               camera=sh.camera, sensor_width_mm=photos.SENSOR_WIDTH_MM[sh.kind],
+                               quality=qs.jpeg_quality)
             gray = (rgb.astype(np.float32) @ [0.299, 0.587, 0.114]).astype(np.uint8)
             query_views.append((sh, gray, depth, tmask))
             bar.update(1)
@@ -179,10 +181,6 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
     log.debug("sample %s (seed %d) written to %s in %.1f s", s.preset, s.seed, root, timings["total"])
     return {"root": str(root), "n_reference": len(ref), "n_query": len(qshots), "n_gcp_clicks": len(clicks),
             "n_tiepoints": len(tps), "timings_s": timings}
-
-
-def _focal_mm(sh) -> float:
-    return sh.camera.fx * photos.SENSOR_WIDTH_MM[sh.kind] / sh.camera.width
 
 
 def write_ply(path: Path, mesh: Mesh) -> Path:

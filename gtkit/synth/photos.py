@@ -125,9 +125,10 @@ def photo_meta(frame, pose: Pose, flight_yaw: float, takeoff_z: float, rng: np.r
     return out
 
 
-def write_photo(path, rgb, meta: dict, *, timestamp: str, model: str, focal_mm: float, quality: int):
-    # EXIF FocalLength is not written: gtkit.io.exif.write_jpeg_with_meta(focal_mm=...) fails in
-    # Pillow (a Fraction in the Exif sub-IFD); the focal length is in cameras.txt anyway.
+def write_photo(path, rgb, meta: dict, *, timestamp: str, model: str, camera: Camera, sensor_width_mm: float,
+                quality: int):
+    """The JPEG with EXIF GPS, time, focal length (true and 35 mm equivalent) and DJI XMP."""
     return write_jpeg_with_meta(path, rgb, lat=meta.get("lat"), lon=meta.get("lon"), alt=meta.get("alt"),
                                 dji=meta["dji"], timestamp=timestamp, make="DJI", model=model,
-                                focal_mm=None, quality=quality)  # see note in write_photo
+                                focal_mm=round(camera.fx * sensor_width_mm / camera.width, 3),
+                                focal_35mm=camera.fx * 36.0 / camera.width, quality=quality)

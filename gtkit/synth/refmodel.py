@@ -51,7 +51,7 @@ def _terrain_tiles(world: World, s: SynthSettings, seed: int, glsl: str, progres
             tex = fill_seams(rgb, mask, PAD)
             V = P + _position_noise(P, m.noise_m, seed + 1)
             parts.append(MeshPart(V, F, uv=uv, texture=tex, name=f"terrain_{i}_{j}"))
-            if progress:
+            if progress is not None:
                 progress.update(1)
     return parts
 
@@ -122,7 +122,7 @@ def _atlas_parts(polys, gsds, s: SynthSettings, seed: int, glsl: str, progress=N
         tex = fill_seams(rgb, mask, PAD)
         V = P + _position_noise(P, m.noise_m, seed + 2 + pg)
         parts.append(MeshPart(V, F, uv=UVa, texture=tex, name=f"atlas_{pg}"))
-        if progress:
+        if progress is not None:
             progress.update(1)
     return parts
 
