@@ -163,7 +163,9 @@ class Alignment:
     scale: float                   # working resolution / full resolution
 
     def as_dict(self) -> dict:
-        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in dataclasses.asdict(self).items()}
+        """JSON-ready: floats rounded, NaN (nothing to measure) as None."""
+        return {k: ((round(v, 4) if np.isfinite(v) else None) if isinstance(v, float) else v)
+                for k, v in dataclasses.asdict(self).items()}
 
 
 def _gray(rgb: np.ndarray, sigma: float) -> np.ndarray:
@@ -456,7 +458,7 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None,
         if progress:
             progress(k + 1, len(names), name, a)
     def med(key):
-        v = np.array([d[key] for d in per.values()], dtype=float)
+        v = np.array([np.nan if d[key] is None else d[key] for d in per.values()], dtype=float)
         return float(np.nanmedian(v)) if np.isfinite(v).any() else None
 
     summary = {"pose_file": str(scene.pose_file), "model": str(scene.model_path),
