@@ -76,6 +76,10 @@ def main(argv=None) -> int:
     for k, v in rep["sec_per_query_by_step"].items():
         rows.append((f"s / query: {k}", f"{v:.3f}"))
     rows.append(("s / query: total (end to end)", f"{rep['sec_per_query']:.3f}"))
+    rows.append(("CPU s / query (process time, all threads)", f"{rep['cpu_sec_per_query']:.3f}"))
+    import os
+
+    rows.append(("load average (1 min) at the end", f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs"))
     rows.append(("localize wall s (incl. offline) / queries", f"{wall:.1f} / {rep['n_queries']}"))
     rows.append(("memory peak (MiB)", f"{peak_mib():.0f}"))
     for k in ("recall_1m1deg", "recall_3m3deg", "recall_5m5deg", "retrieval_R1", "retrieval_R3", "retrieval_P3"):

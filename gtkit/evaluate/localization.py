@@ -90,6 +90,7 @@ def evaluate(project: Project | str | Path, ablation: str = "default", with_retr
     secs = {k: float(np.mean([q["seconds"].get(k, 0.0) for q in queries])) for k in STEPS}
     rep["sec_per_query"] = float(np.mean([q.get("seconds_total", 0.0) for q in queries]))
     rep["sec_per_query_by_step"] = secs
+    rep["cpu_sec_per_query"] = float(np.mean([q.get("cpu_seconds_total", 0.0) for q in queries]))
     rep["wall_s"] = status.get("wall_s")
     rep["executor"] = status.get("executor")
     rep["database_views"] = status.get("database_views")
@@ -129,7 +130,8 @@ def markdown(rep: dict) -> str:
     L += ["Seconds per query by step (mean, measured inside the worker):", "",
           "| step | s / query |", "|---|---|"]
     L += [f"| {k} | {v:.3f} |" for k, v in rep["sec_per_query_by_step"].items()]
-    L += [f"| **total** | **{rep['sec_per_query']:.3f}** |", ""]
+    L += [f"| **total** | **{rep['sec_per_query']:.3f}** |",
+          f"| CPU time of the worker (all threads) | {rep.get('cpu_sec_per_query', 0.0):.3f} |", ""]
     if rep["failures"]:
         L += ["Failures:", "", "| query | reason |", "|---|---|"]
         L += [f"| {f['name']} | {f['reason']} |" for f in rep["failures"]]

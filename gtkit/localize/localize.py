@@ -247,12 +247,13 @@ def localize_query(task) -> dict:
     ctx, name = task
     t0 = time.perf_counter()
     W = _context(ctx)  # once per worker process: database, descriptors, extractor, matcher
-    t_start = time.perf_counter()
+    t_start, c_start = time.perf_counter(), time.process_time()
     try:
         out = _localize_query(W, name)
     except GtkitError as e:
         out = {"name": name, "ok": False, "reason": str(e), "seconds": {}}
     out["seconds_total"] = time.perf_counter() - t_start
+    out["cpu_seconds_total"] = time.process_time() - c_start  # this process's CPU time (all its threads)
     out["seconds_setup"] = t_start - t0
     return out
 
