@@ -85,6 +85,9 @@ def main():
     app = QApplication.instance() or QApplication([])
     from gui.main_window import MainWindow
 
+    import shutil
+
+    shutil.rmtree(root / "work" / "annotate", ignore_errors=True)  # cold: no session, no prior cache
     rows = []
     t = time.perf_counter()
     win = MainWindow(root)
