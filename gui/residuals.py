@@ -105,41 +105,57 @@ def triangulate(cams: list, poses: list, uv: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(np.concatenate(A), np.concatenate(b), rcond=None)[0]
 
 
-def computed_residuals(paths, tiepoints) -> dict[str, Residual]:
-    """Reprojection residuals of every click under the registered poses (module docstring)."""
-    from gtkit.io.poses import read_intrinsics, read_poses
+class PosedResiduals:
+    """Registered poses and intrinsics loaded once; the residuals of any tie point under them,
+    so a click moved after registration shows its new residual at once."""
 
-    poses, cams = {}, {}
-    for stage in (REFERENCE_BLOCK, REGISTER):
-        d = paths.stage(stage)
-        if (d / "poses.txt").is_file() and (d / "intrinsics.txt").is_file():
-            try:
-                poses.update(read_poses(d / "poses.txt"))
-                cams.update(read_intrinsics(d / "intrinsics.txt"))
-            except GtkitError as e:
-                log.warning("%s", e)
-    if not (paths.stage(REGISTER) / "poses.txt").is_file():
-        return {}
-    out = {}
-    for tp in tiepoints:
-        obs = [o for o in tp.observations if o.image in poses and o.image in cams]
+    def __init__(self, paths):
+        from gtkit.io.poses import read_intrinsics, read_poses
+
+        self.poses, self.cams = {}, {}
+        self.available = (paths.stage(REGISTER) / "poses.txt").is_file()
+        if not self.available:
+            return
+        for stage in (REFERENCE_BLOCK, REGISTER):
+            d = paths.stage(stage)
+            if (d / "poses.txt").is_file() and (d / "intrinsics.txt").is_file():
+                try:
+                    self.poses.update(read_poses(d / "poses.txt"))
+                    self.cams.update(read_intrinsics(d / "intrinsics.txt"))
+                except GtkitError as e:
+                    log.warning("%s", e)
+
+    def residual(self, tp) -> Residual | None:
+        obs = [o for o in tp.observations if o.image in self.poses and o.image in self.cams]
         if len(obs) < 2 or not any(o.image.startswith("queries/") for o in obs):
-            continue
-        cs, ps = [cams[o.image] for o in obs], [poses[o.image] for o in obs]
+            return None
+        cs, ps = [self.cams[o.image] for o in obs], [self.poses[o.image] for o in obs]
         uv = np.array([[o.x, o.y] for o in obs])
         X = triangulate(cs, ps, uv)
         per = {}
         for o, c, p, u in zip(obs, cs, ps, uv):
             proj, front = c.project(p.transform(X[None]))
             per[o.image] = float(np.linalg.norm(proj[0] - u)) if front[0] else float("inf")
-        out[tp.id] = Residual(max(per.values()), None, per)
+        return Residual(max(per.values()), None, per)
+
+
+def computed_residuals(paths, tiepoints, model: PosedResiduals | None = None) -> dict[str, Residual]:
+    """Reprojection residuals of every click under the registered poses (module docstring)."""
+    model = model or PosedResiduals(paths)
+    if not model.available:
+        return {}
+    out = {}
+    for tp in tiepoints:
+        r = model.residual(tp)
+        if r is not None:
+            out[tp.id] = r
     return out
 
 
-def read_residuals(paths, tiepoints=()) -> dict[str, Residual]:
+def read_residuals(paths, tiepoints=(), model: PosedResiduals | None = None) -> dict[str, Residual]:
     """tie-point id -> residual (see the module docstring); empty when there is nothing to show."""
     f = residual_file(paths)
-    out = _from_file(f) if f is not None else computed_residuals(paths, tiepoints)
+    out = _from_file(f) if f is not None else computed_residuals(paths, tiepoints, model)
     reg = paths.stage(REGISTER) / "registration.json"
     if out and reg.is_file():
         try:

@@ -17,7 +17,7 @@ from PySide6.QtWidgets import (QHBoxLayout, QLabel, QListWidget, QListWidgetItem
 from gtkit.io.tiepoints import Observation, TiePoint
 
 from .image_view import ImageView
-from .residuals import read_residuals
+from .residuals import PosedResiduals, read_residuals, residual_file
 from .suggest import suggest
 from .undo import AddTiePoint, DeleteTiePoint, MoveObservation, PlaceObservation
 
@@ -56,7 +56,9 @@ class TiePointPage(QWidget):
         self.active: str | None = None
         self.suggestions: list = []
         self.suggestion_index = 0
-        self.residuals = read_residuals(paths, store.tiepoints)
+        # residuals after registration; recomputed for edited tie points when they come from poses
+        self.posed = None if residual_file(paths) else PosedResiduals(paths)
+        self.residuals = read_residuals(paths, store.tiepoints, self.posed)
         self.queries = self._list_images(paths.query_images, "queries")
         self.references = self._list_images(paths.reference_images, "reference")
 
@@ -113,7 +115,7 @@ class TiePointPage(QWidget):
             v.view_changed.connect(self.session_changed)
         self.qview.marker_moved.connect(lambda k, *a: self._marker_moved(self.query, k, *a))
         self.rview.marker_moved.connect(lambda k, *a: self._marker_moved(self.reference, k, *a))
-        self.undo.indexChanged.connect(lambda _i: self.refresh())
+        self.undo.indexChanged.connect(lambda _i: self._after_edit())
 
     @staticmethod
     def _list_images(folder, prefix) -> list[str]:
@@ -297,6 +299,22 @@ class TiePointPage(QWidget):
         self.suggest_label.setText(f"{what}; {len(self.suggestions)} suggestions left")
         self.refresh()
         self._focus_suggestion()
+
+    def _after_edit(self):
+        """After any edit (or undo/redo): fresh residual for the edited tie point, then redraw."""
+        if self.posed is not None and self.posed.available:
+            cmd = self.undo.command(self.undo.index() - 1) if self.undo.index() > 0 else None
+            ids = {getattr(cmd, "tp_id", None) or getattr(getattr(cmd, "tp", None), "id", None)}
+            nxt = self.undo.command(self.undo.index()) if self.undo.index() < self.undo.count() else None
+            ids.add(getattr(nxt, "tp_id", None) or getattr(getattr(nxt, "tp", None), "id", None))
+            for tid in ids - {None}:
+                tp = self.store.get(tid)
+                r = self.posed.residual(tp) if tp is not None else None
+                if r is None:
+                    self.residuals.pop(tid, None)
+                else:  # edited since registration: its registration verdict no longer applies
+                    self.residuals[tid] = r
+        self.refresh()
 
     # --- display -------------------------------------------------------------------------------
     def _label(self, tp_id: str) -> str:

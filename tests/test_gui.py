@@ -128,6 +128,10 @@ def test_kill_mid_edit_loses_no_committed_click_and_reopen_restores(qtbot, demo,
     committed: list[tuple[str, str, float, float]] = []
     n_done, kill_after = 0, 31
     t0 = time.time()
+    import threading
+
+    watchdog = threading.Timer(180, proc.kill)  # a hung GUI must not hang the test run
+    watchdog.start()
     try:
         for line in proc.stdout:
             if not line.startswith("DONE "):
@@ -141,10 +145,11 @@ def test_kill_mid_edit_loses_no_committed_click_and_reopen_restores(qtbot, demo,
             if n_done == kill_after:
                 proc.send_signal(signal.SIGKILL)  # mid-edit: the next clicks are already queued
                 break
-            assert time.time() - t0 < 90
     finally:
+        watchdog.cancel()
         proc.kill()
         proc.wait()
+    assert time.time() - t0 < 180, "the scripted GUI did not finish in time"
     assert len(committed) >= 20
     on_disk = {(t.id, o.image): (o.x, o.y) for t in read_tiepoints(demo / "tiepoints.json") for o in t.observations}
     for tp, image, x, y in committed:
@@ -273,9 +278,9 @@ def test_review_modes_and_verdicts_saved(qtbot, demo):
     w2.close()
 
 
-def test_residuals_computed_from_registered_poses_flag_the_bad_click(demo):
+def test_residuals_computed_from_registered_poses_flag_the_bad_click(qtbot, demo):
     from gtkit.io.poses import write_intrinsics, write_poses
-    from gtkit.io.tiepoints import Observation, TiePoint
+    from gtkit.io.tiepoints import Observation, TiePoint, write_tiepoints
     from gtkit.project import Paths
     from gui.residuals import read_residuals
 
@@ -296,12 +301,26 @@ def test_residuals_computed_from_registered_poses_flag_the_bad_click(demo):
             uv, _ = cams[n].project(poses[n].transform(X[None]))
             obs.append(Observation(n, *(uv[0] + rng.normal(0, 0.3, 2))))
         tps.append(TiePoint(f"tp{i:05d}", obs))
+    true_xy = (tps[2].observations[1].x, tps[2].observations[1].y)
     tps[2].observations[1].x += 20.0  # a click 20 px off
     res = read_residuals(P, tps)
     assert set(res) == {t.id for t in tps}
     worst = max(res, key=lambda k: res[k].residual_px)
     assert worst == "tp00002" and res[worst].residual_px > 5.0
     assert max(v.residual_px for k, v in res.items() if k != worst) < 1.5
+    # in the GUI: worst first; moving the bad click back updates its residual at once
+    write_tiepoints(demo / "tiepoints.json", tps)
+    w = _window(qtbot, demo)
+    page = w.tiepoints
+    assert page.tp_tree.topLevelItem(0).text(0) == "tp00002"
+    page.set_pair(Q0, "reference/R01_000_N.jpg")
+    o = page.store.observation("tp00002", "reference/R01_000_N.jpg")
+    page.rview.marker_moved.emit("tp00002", o.x, o.y, *true_xy)
+    assert page.residuals["tp00002"].residual_px < 1.5
+    assert page.tp_tree.topLevelItem(0).text(0) != "tp00002"
+    qtbot.keyClick(w, Qt.Key.Key_Z, Qt.KeyboardModifier.ControlModifier)  # undo: the bad click is back
+    assert page.residuals["tp00002"].residual_px > 5.0
+    w.close()
 
 
 def test_qt_binding_keeps_none_alive():
