@@ -392,6 +392,9 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
     if not force and stage_done(out, settings, inputs):
         log.info("localize: up to date (%s)", out)
         return out
+    if not project.paths.cameras.is_file():
+        raise GtkitError("intrinsics of the query photos missing (name MODEL W H params... per line)",
+                         project.paths.cameras)
     t_all = time.perf_counter()
     db_full = load_database(project)
     db = select_views(db_full, settings)
