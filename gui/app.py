@@ -19,6 +19,15 @@ def make_app():
 
 
 def main(project_dir, poses=None, query=None) -> int:
+    if not (os.environ.get("QT_QPA_PLATFORM") or os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+            or sys.platform in ("win32", "darwin")):
+        from gtkit.errors import GtkitError
+
+        raise GtkitError("no display for the annotator (DISPLAY is not set): run it on a desktop, "
+                         "or set QT_QPA_PLATFORM=offscreen for scripted use; `gtkit overlay` works headless")
+    from gtkit.project import Project
+
+    Project.load(project_dir)  # a clear one-line error before any window opens
     app = make_app()
     from .main_window import MainWindow
 
