@@ -212,8 +212,19 @@ class ImageView(QGraphicsView):
     # --- mouse -------------------------------------------------------------------------------
     def wheelEvent(self, e):
         d = e.angleDelta().y()
-        if d:
-            self.zoom_by(1.0015 ** d)
+        if not d:
+            return
+        pos = e.position()
+        before = self.viewportTransform().inverted()[0].map(pos)  # the photo point under the cursor
+        anchor = self.transformationAnchor()
+        self.setTransformationAnchor(QGraphicsView.ViewportAnchor.NoAnchor)
+        self.zoom_by(1.0015 ** d)
+        self.setTransformationAnchor(anchor)
+        after = self.viewportTransform().map(before)  # keep it under the cursor (as far as the scroll range allows)
+        self.horizontalScrollBar().setValue(self.horizontalScrollBar().value() + round(after.x() - pos.x()))
+        self.verticalScrollBar().setValue(self.verticalScrollBar().value() + round(after.y() - pos.y()))
+        self._maybe_full()
+        self.view_changed.emit()
 
     def mousePressEvent(self, e):
         if e.button() in (Qt.MouseButton.RightButton, Qt.MouseButton.MiddleButton):

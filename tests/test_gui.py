@@ -367,3 +367,42 @@ def test_reopening_restores_pair_active_point_and_view(qtbot, demo):
         assert abs(got["zoom"] - st["zoom"]) < 1e-6
         assert np.allclose(got["center"], st["center"], atol=2.0 / st["zoom"] + 0.5)
     w2.close()
+
+
+def test_wheel_zoom_keeps_the_point_under_the_cursor_pan_and_loupe(qtbot, demo):
+    from PySide6.QtCore import QPoint
+    from PySide6.QtGui import QWheelEvent
+
+    w = _window(qtbot, demo)
+    v = w.tiepoints.qview
+    vp = v.viewport()
+    v.center_on(320, 240, zoom=2.0)  # the photo larger than the view: zooming can keep any point in place
+    pos = QPointF(vp.width() * 0.3, vp.height() * 0.6)
+    before = v.viewportTransform().inverted()[0].map(pos)
+    z0 = v.zoom()
+    for _ in range(3):  # three notches of the wheel
+        ev = QWheelEvent(pos, vp.mapToGlobal(pos), QPoint(0, 0), QPoint(0, 120), Qt.MouseButton.NoButton,
+                         Qt.KeyboardModifier.NoModifier, Qt.ScrollPhase.NoScrollPhase, False)
+        QApplication.sendEvent(vp, ev)
+    assert v.zoom() > 1.6 * z0
+    after = v.viewportTransform().inverted()[0].map(pos)
+    assert abs(after.x() - before.x()) < 1.0 and abs(after.y() - before.y()) < 1.0  # zoomed about the cursor
+    # right-drag pans by the dragged distance
+    c0 = v.view_state()["center"]
+    p0 = QPointF(vp.width() / 2, vp.height() / 2)
+    qtbot.mousePress(vp, Qt.MouseButton.RightButton, pos=p0.toPoint())
+    ev = QMouseEvent(QEvent.Type.MouseMove, p0 + QPointF(-40, -30), vp.mapToGlobal(p0 + QPointF(-40, -30)),
+                     Qt.MouseButton.NoButton, Qt.MouseButton.RightButton, Qt.KeyboardModifier.NoModifier)
+    QApplication.sendEvent(vp, ev)
+    qtbot.mouseRelease(vp, Qt.MouseButton.RightButton, pos=(p0 + QPointF(-40, -30)).toPoint())
+    c1 = v.view_state()["center"]
+    assert abs((c1[0] - c0[0]) * v.zoom() - 40) < 2 and abs((c1[1] - c0[1]) * v.zoom() - 30) < 2
+    # the loupe follows the cursor and shows the photo magnified
+    ev = QMouseEvent(QEvent.Type.MouseMove, p0, vp.mapToGlobal(p0), Qt.MouseButton.NoButton, Qt.MouseButton.NoButton,
+                     Qt.KeyboardModifier.NoModifier)
+    QApplication.sendEvent(vp, ev)
+    assert v.loupe.isVisible() and not v.loupe.pixmap().isNull()
+    qtbot.keyClick(w, Qt.Key.Key_L)  # toggled off
+    QApplication.sendEvent(vp, ev)
+    assert not v.loupe.isVisible()
+    w.close()
