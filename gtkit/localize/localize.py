@@ -252,6 +252,9 @@ def localize_query(task) -> dict:
         out = _localize_query(W, name)
     except GtkitError as e:
         out = {"name": name, "ok": False, "reason": str(e), "seconds": {}}
+    except Exception as e:  # noqa: BLE001 - one bad query must not stop the run; the reason says what broke
+        log.exception("localize: %s failed", name)
+        out = {"name": name, "ok": False, "reason": f"internal error ({type(e).__name__}: {e})", "seconds": {}}
     out["seconds_total"] = time.perf_counter() - t_start
     out["cpu_seconds_total"] = time.process_time() - c_start  # this process's CPU time (all its threads)
     out["seconds_setup"] = t_start - t0
