@@ -112,24 +112,26 @@ def tie_points(queries: list[tuple[Shot, np.ndarray, np.ndarray, np.ndarray]], r
             tid = f"tp{len(tps) + 1:04d}"
             obs = [Observation(shot.name, *(uv[i] + rng.normal(0, a.tie_sigma_px, 2)))]
             obs += [Observation(ref_shots[k].name, *(ref_uv[i, k] + rng.normal(0, a.tie_sigma_px, 2))) for k in ks]
-            gross = bool(rng.random() < a.gross_share)
-            bad = None
-            if gross:
-                j = int(rng.integers(1, len(obs)))          # a wrong click in a reference photo
-                ang = rng.uniform(0, 2 * np.pi)
-                dist = rng.uniform(*a.gross_px)
-                o = obs[j]
-                cam = next(r for r in ref_shots if r.name == o.image).camera
-                nx = float(np.clip(o.x + dist * np.cos(ang), 1, cam.width - 1))
-                ny = float(np.clip(o.y + dist * np.sin(ang), 1, cam.height - 1))
-                obs[j] = Observation(o.image, nx, ny)
-                bad = o.image
             for o in obs:
                 o.x, o.y = round(float(o.x), 3), round(float(o.y), 3)
             tps.append(TiePoint(tid, obs, source="simulated"))
-            truth.append({"id": tid, "xyz": [round(float(v), 4) for v in X[i]], "gross_mistake": gross,
-                          "wrong_image": bad,
+            truth.append({"id": tid, "xyz": [round(float(v), 4) for v in X[i]], "gross_mistake": False,
+                          "wrong_image": None,
                           "true_pixels": {shot.name: [round(float(v), 3) for v in uv[i]],
                                           **{ref_shots[k].name: [round(float(v), 3) for v in ref_uv[i, k]]
                                              for k in ks}}})
+    # gross mistakes: exactly round(share * n) tie points get one wrong reference click
+    cams = {r.name: r.camera for r in ref_shots}
+    n_bad = int(round(a.gross_share * len(tps)))
+    for t in sorted(rng.choice(len(tps), n_bad, replace=False).tolist()) if n_bad else []:
+        obs = tps[t].observations
+        j = int(rng.integers(1, len(obs)))
+        o, cam = obs[j], cams[obs[j].image]
+        dist = rng.uniform(*a.gross_px)
+        for ang in rng.uniform(0, 2 * np.pi) + np.arange(12) * (np.pi / 6):  # stay inside the photo
+            nx, ny = o.x + dist * np.cos(ang), o.y + dist * np.sin(ang)
+            if 1 <= nx <= cam.width - 1 and 1 <= ny <= cam.height - 1:
+                break
+        obs[j] = Observation(o.image, round(float(nx), 3), round(float(ny), 3))
+        truth[t]["gross_mistake"], truth[t]["wrong_image"] = True, o.image
     return tps, truth
