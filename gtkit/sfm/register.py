@@ -37,6 +37,7 @@ from ..io.tiepoints import TiePoint, read_tiepoints
 from ..pose import Pose
 from ..project import Project, file_fingerprint, mark_stage_done, stage_done
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
+from .crossmatch import CrossMatchSettings, cross_matches
 from .geometry import (RegistrationError, model_cameras, model_poses, reprojection_px, robust_sim3, sim3_apply,
                        triangulate_clicks)
 
@@ -54,6 +55,8 @@ class RegisterSettings:
     min_tiepoints: int = 3
     ba_max_iterations: int = 100
     num_threads: int = 2
+    # automatic SIFT tie points between query and reference photos, added to the clicks
+    cross: CrossMatchSettings = field(default_factory=CrossMatchSettings)
 
 
 @dataclass
@@ -396,6 +399,21 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     prefixes = tuple(f"queries/{s}/" for s in blocks)
     clicks = {tp.id: {o.image: (o.x, o.y) for o in tp.observations}
               for tp in tiepoints if any(o.image.startswith(prefixes) for o in tp.observations)}
+    t_cm = time.time()
+    qp, qc, cen = {}, {}, {}
+    for rec_q in blocks.values():
+        qp.update(model_poses(rec_q))
+        qc.update(model_cameras(rec_q))
+        for im in rec_q.images.values():
+            if im.has_pose:
+                pts = [rec_q.points3D[p.point3D_id].xyz for p in im.points2D if p.has_point3D()]
+                if pts:
+                    cen[im.name] = np.median(np.array(pts), axis=0)
+    auto = cross_matches(qp, qc, cen, ref_cache["poses"], ref_cache["cams"],
+                         [P.stage(QUERIES_STAGE) / sq / "database.db" for sq in blocks],
+                         P.stage(REFERENCE_STAGE) / "database.db", settings.cross)
+    clicks.update(auto)
+    t_cm = time.time() - t_cm
     j = build_joint(ref_rec, blocks, clicks)
     # pass a: Sim(3) inliers, robust loss
     first = {}
@@ -460,6 +478,8 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     tie_table, bad = {}, {}
     status_by_id = {s.id: (seq, s) for seq, st in statuses.items() for s in st}
     for tid in clicks:
+        if tid.startswith("auto:"):
+            continue
         seq, s = status_by_id.get(tid, (None, None))
         row = {"sequence": seq, "sim3_inlier": bool(s and s.inlier), "sim3_residual_m": s.sim3_residual_m if s else None,
                "in_final_ba": tid in j.tie_pids, "note": s.reason if s else "not usable for the Sim(3)"}
@@ -485,9 +505,11 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         "median_reproj_px": float(np.median(sfm_err)) if len(sfm_err) else None,
         "mean_reproj_px": float(np.mean(sfm_err)) if len(sfm_err) else None,
         "median_tiepoint_reproj_px": float(np.median(tie_err)) if tie_err else None,
-        "n_tiepoints_in_ba": len(j.tie_pids), "bad_tiepoints": bad, "tiepoints": tie_table,
+        "n_tiepoints_in_ba": sum(1 for t in j.tie_pids if not t.startswith("auto:")),
+        "n_auto_tiepoints": len(auto), "n_auto_tiepoints_in_ba": sum(1 for t in j.tie_pids if t.startswith("auto:")),
+        "bad_tiepoints": bad, "tiepoints": tie_table,
         "ba_final_cost": float(summary.final_cost) if hasattr(summary, "final_cost") else None,
-        "seconds": {"sim3": t_sim - t0, "joint_ba": t_ba - t_sim}})
+        "seconds": {"sim3": t_sim - t0, "cross_matching": t_cm, "joint_ba": t_ba - t_sim - t_cm}})
     (out / "model").mkdir(exist_ok=True)
     rec.write(out / "model")
     write_poses(out / "poses.txt", poses, header="pseudo-GT poses of the query photos (gtkit register)")
