@@ -3,7 +3,8 @@ commercial package):
 
     reference photos -> SfM, georegistered by RTK GPS and GCPs   (gtkit sfm DIR --block reference)
     each query sequence's wide photos -> its own SfM block      (gtkit sfm DIR --block queries)
-    tie points (GUI clicks or simulated) -> Sim(3) per sequence -> one joint BA, reference fixed
+    tie points (GUI clicks or simulated) -> Sim(3) per sequence -> + automatic SIFT tie points
+        -> one joint BA, reference fixed
                                                                  (gtkit register DIR)
     quality report, against truth/ where it exists              (gtkit report DIR)
 

@@ -9,6 +9,9 @@ def register(sub):
     p.add_argument("--sim3-max-error-m", type=float, default=None, help="Sim(3) RANSAC threshold (default 1.5 m)")
     p.add_argument("--tie-max-px", type=float, default=None, help="click residual threshold (default 4 px)")
     p.add_argument("--refine-query-intrinsics", action="store_true")
+    p.add_argument("--cross-matches", type=int, default=None, metavar="N",
+                   help="reference photos SIFT-matched with each query photo for automatic tie points "
+                        "(default 4; 0 = clicks only)")
     p.add_argument("--force", action="store_true")
     p.set_defaults(func=run)
 
@@ -23,6 +26,8 @@ def run(args):
     if args.tie_max_px:
         s.tie_max_px = args.tie_max_px
     s.refine_query_intrinsics = args.refine_query_intrinsics
+    if args.cross_matches is not None:
+        s.cross.ref_per_query = args.cross_matches
     r = run_register(args.project, s, force=args.force)
     failed = 0
     for seq, info in r["sequences"].items():
@@ -33,7 +38,8 @@ def run(args):
             print(f"{seq}: registered, {info['n_sim3_inliers']}/{info['n_tiepoints']} tie points Sim(3) inliers, {info['n_tiepoints_final_ba']} in the final BA, "
                   f"Sim(3) RMSE {info['sim3_rmse_m']:.3f} m")
     print(f"pseudo-GT: {r['n_registered']}/{r['n_images']} query photos; median reprojection "
-          f"{r.get('median_reproj_px') or float('nan'):.2f} px, tie points {r.get('median_tiepoint_reproj_px') or float('nan'):.2f} px")
+          f"{r.get('median_reproj_px') or float('nan'):.2f} px, tie points {r.get('median_tiepoint_reproj_px') or float('nan'):.2f} px; "
+          f"{r.get('n_auto_tiepoints_in_ba', 0)} automatic tie points in the joint BA")
     for tid, b in (r.get("bad_tiepoints") or {}).items():
         print(f"  bad tie point {tid}: {b['reason']}; " + ", ".join(
             f"{c['image']} ({c['residual_px']:.0f} px)" for c in b["dropped_clicks"]))

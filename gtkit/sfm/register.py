@@ -10,6 +10,8 @@ Per sequence:
    more than ``sim3_max_error_m`` are outliers. Fewer than 3 usable tie points, collinear ones,
    or a failed fit: the sequence is an error with its reason (never a prior pose).
 3. transform the query block.
+Automatic tie points (SIFT matches between each query photo and the reference photos looking the
+same way, see :mod:`gtkit.sfm.crossmatch`) join the clicks from pass b on; they are not listed.
 Then one joint bundle adjustment (the reference photos holding tie clicks keep their poses and
 intrinsics fixed; each registered query block enters with its own 3D points; each tie point is
 a 3D point observed in both blocks and so ties them together), in passes:

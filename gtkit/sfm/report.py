@@ -70,7 +70,8 @@ def run(project: Project | str | Path, settings: ReportSettings | None = None) -
     if reg:
         est = read_poses(P.stage(REGISTER_STAGE) / "poses.txt") if (P.stage(REGISTER_STAGE) / "poses.txt").is_file() else {}
         rep.update({k: reg.get(k) for k in ("median_reproj_px", "mean_reproj_px", "median_tiepoint_reproj_px",
-                                             "n_registered", "n_images", "sequences", "bad_tiepoints")})
+                                             "n_registered", "n_images", "sequences", "bad_tiepoints",
+                                             "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba")})
         rep["per_image"] = {n: dict(v) for n, v in reg.get("images", {}).items()}
     else:
         rep.update({"median_reproj_px": None, "median_tiepoint_reproj_px": None, "n_registered": 0, "n_images": 0,
@@ -119,7 +120,9 @@ def _markdown(rep: dict, folder: Path) -> str:
     L += ["| figure | value |", "|---|---|",
           f"| query photos registered | {rep['n_registered']} / {rep['n_images']} |",
           f"| median reprojection error (SfM points, joint BA) | {_fmt(rep.get('median_reproj_px'), 2)} px |",
-          f"| median tie-point reprojection error | {_fmt(rep.get('median_tiepoint_reproj_px'), 2)} px |"]
+          f"| median tie-point reprojection error | {_fmt(rep.get('median_tiepoint_reproj_px'), 2)} px |",
+          f"| clicked / automatic tie points in the joint BA | {rep.get('n_tiepoints_in_ba', 0)} / "
+          f"{rep.get('n_auto_tiepoints_in_ba', 0)} |"]
     if "median_pos_err_m" in rep:
         L += [f"| median position error vs truth | {_fmt(rep['median_pos_err_m'])} m |",
               f"| median rotation error vs truth | {_fmt(rep['median_rot_err_deg'])} ° |"]
