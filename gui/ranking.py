@@ -151,6 +151,27 @@ class OverlapRanker:
         pts = pts[np.isfinite(pts).all(1)]
         return pts if len(pts) else None
 
+    def predictor(self, query: str, ref: str):
+        """A function: query pixels (N, 2) -> where they should be in ``ref`` (N, 2), through the
+        ground plane with the two photos' poses (prior or registered); None without poses/cameras.
+        Buildings and pose errors make it approximate: used as a wide gate for suggestions."""
+        pq, cq, pr, cr = self.pose(query), self.cameras.get(query), self.pose(ref), self.cameras.get(ref)
+        if None in (pq, cq, pr, cr):
+            return None
+        zg = self.z_ground
+
+        def predict(uv: np.ndarray) -> np.ndarray:
+            d = cq.rays(np.asarray(uv, float)) @ pq.R
+            C = pq.center
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.where(d[:, 2] < -1e-3, (zg - C[2]) / d[:, 2], np.nan)
+            X = C + t[:, None] * d
+            out, front = cr.project(pr.transform(X))
+            out[~front | ~np.isfinite(t)] = np.nan
+            return out
+
+        return predict
+
     def overlap(self, query_points: np.ndarray, ref: str) -> float | None:
         pose, cam = self.pose(ref), self.cameras.get(ref)
         if pose is None or cam is None:

@@ -19,6 +19,9 @@ class SuggestSettings:
     ransac_px: float = 2.0     # fundamental-matrix RANSAC threshold, working pixels
     max_suggestions: int = 40  # at most this many, spread over a grid on the query photo
     grid: tuple[int, int] = (8, 6)
+    gate: float = 0.15         # with a pose predictor: matches farther than this share of the
+                               # reference's long side from the predicted position are dropped
+    min_inliers: int = 12      # fewer RANSAC inliers than this: no suggestions (unreliable)
 
 
 @dataclass
@@ -43,8 +46,14 @@ def _load(path: Path, max_side: int):
     return g, size[0] / w, size[1] / h
 
 
-def suggest(query_path: str | Path, ref_path: str | Path, settings: SuggestSettings | None = None) -> list[Suggestion]:
-    """Suggested tie points between two photos, in full-resolution pixels (gtkit convention)."""
+def suggest(query_path: str | Path, ref_path: str | Path, settings: SuggestSettings | None = None,
+            predict=None) -> list[Suggestion]:
+    """Suggested tie points between two photos, in full-resolution pixels (gtkit convention).
+
+    ``predict`` (optional, see :meth:`gui.ranking.OverlapRanker.predictor`) maps query pixels to
+    their expected reference pixels from the photos' poses; matches far from it are dropped
+    before RANSAC, which removes the repetitive-texture mismatches wide-baseline oblique pairs
+    are full of."""
     import cv2
 
     st = settings or SuggestSettings()
@@ -63,8 +72,16 @@ def suggest(query_path: str | Path, ref_path: str | Path, settings: SuggestSetti
     pq = np.array([kq[i].pt for i, _, _ in good], np.float64)
     pr = np.array([kr[j].pt for _, j, _ in good], np.float64)
     ratio = np.array([r for _, _, r in good])
+    if predict is not None:
+        exp = np.asarray(predict(index_to_pixel(pq) / [sqx, sqy]), float)  # full-resolution reference pixels
+        got = index_to_pixel(pr) / [srx, sry]
+        limit = st.gate * max(gr.shape) / max(srx, sry)
+        near = np.linalg.norm(exp - got, axis=1) < limit  # NaN (no prediction) compares False
+        pq, pr, ratio = pq[near], pr[near], ratio[near]
+    if len(pq) < 8:
+        return []
     _, inl = cv2.findFundamentalMat(pq, pr, cv2.FM_RANSAC, st.ransac_px, 0.999)
-    if inl is None:
+    if inl is None or int(inl.sum()) < st.min_inliers:
         return []
     keep = inl.ravel().astype(bool)
     pq, pr, ratio = pq[keep], pr[keep], ratio[keep]

@@ -31,13 +31,13 @@ class _SuggestSignals(QObject):
 
 
 class _SuggestJob(QRunnable):
-    def __init__(self, q, r, qp, rp, signals):
+    def __init__(self, q, r, qp, rp, signals, predict=None):
         super().__init__()
-        self.q, self.r, self.qp, self.rp, self.signals = q, r, qp, rp, signals
+        self.q, self.r, self.qp, self.rp, self.signals, self.predict = q, r, qp, rp, signals, predict
 
     def run(self):
         try:
-            out = suggest(self.qp, self.rp)
+            out = suggest(self.qp, self.rp, predict=self.predict)
         except Exception as e:  # noqa: BLE001 - shown to the user, never crashes the GUI
             out = e
         self.signals.done.emit(self.q, self.r, out)
@@ -250,11 +250,12 @@ class TiePointPage(QWidget):
         if not (self.query and self.reference):
             return
         qp, rp = str(self.paths.images / self.query), str(self.paths.images / self.reference)
+        predict = self.ranker.predictor(self.query, self.reference)  # poses gate the matches
         self.suggest_label.setText("matching ...")
         if sync:
-            self._on_suggestions(self.query, self.reference, suggest(qp, rp))
+            self._on_suggestions(self.query, self.reference, suggest(qp, rp, predict=predict))
         else:
-            self._pool.start(_SuggestJob(self.query, self.reference, qp, rp, self._sig))
+            self._pool.start(_SuggestJob(self.query, self.reference, qp, rp, self._sig, predict))
 
     def _on_suggestions(self, q, r, out):
         if (q, r) != (self.query, self.reference):
@@ -263,7 +264,8 @@ class TiePointPage(QWidget):
             self.suggest_label.setText(f"matching failed: {out}")
             return
         self.suggestions, self.suggestion_index = list(out), 0
-        self.suggest_label.setText(f"{len(out)} suggestions: A accept, R reject, Tab skip")
+        self.suggest_label.setText(f"{len(out)} suggestions: A accept, R reject, Tab skip" if out else
+                                   "no reliable matches for this pair: click by hand or try another reference")
         self.refresh()
         self._focus_suggestion()
 

@@ -87,3 +87,36 @@ def test_reference_ranking_from_priors_finds_the_overlapping_photos_on_the_sampl
         ratios.append(true[top] / max(true.values()))
     print("top-1 true overlap / best:", np.round(ratios, 2))
     assert np.median(ratios) > 0.9 and min(ratios) > 0.6
+
+
+def test_suggestions_on_the_sample_agree_with_the_truth(sample_root):
+    """gui.suggest with the pose gate (EXIF priors) between query photos and their top-ranked
+    reference: the suggestions an annotator would see, checked with the true depth and poses."""
+    from gtkit.io.mesh import load_model
+    from gtkit.io.poses import read_intrinsics, read_poses
+    from gtkit.render.renderer import Renderer
+    from gui.ranking import OverlapRanker
+    from gui.suggest import suggest
+
+    proj = Project.load(sample_root)
+    poses = read_poses(sample_root / "truth/poses.txt")
+    cams = read_intrinsics(sample_root / "truth/intrinsics.txt")
+    rend = Renderer(load_model(sample_root / "model/reference.obj", proj.frame))
+    refs = sorted(n for n in poses if n.startswith("reference/"))
+    ranker = OverlapRanker(proj.paths, proj.frame)
+    errs = []
+    for q in [n for n in sorted(poses) if n.endswith("_W.jpg")][::8]:
+        r = ranker.rank(q, refs)[0][0]
+        sug = suggest(proj.paths.images / q, proj.paths.images / r, predict=ranker.predictor(q, r))
+        cq, pq, cr, pr = cams[q], poses[q], cams[r], poses[r]
+        depth = rend.render(cq, pq, with_rgb=False).depth
+        for s in sug:
+            z = depth[int(s.yq), int(s.xq)]
+            if np.isfinite(z):
+                ray = cq.rays(np.array([s.xq, s.yq]))
+                X = pq.R.T @ (ray * z / ray[2] - pq.t)
+                uv, _ = cr.project(pr.transform(X[None]))
+                errs.append(float(np.linalg.norm(uv[0] - [s.xr, s.yr])))
+    errs = np.array(errs)
+    print(f"{len(errs)} suggestions, median {np.median(errs):.2f} px, {100 * np.mean(errs < 3):.1f}% within 3 px")
+    assert len(errs) >= 30 and np.median(errs) < 1.5 and np.mean(errs < 3) > 0.85
