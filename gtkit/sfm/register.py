@@ -453,17 +453,19 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     sfm_err = point_reprojection_errors(rec, [p for p in rec.points3D if p not in tie_set])
     poses, cams, covs, per_image = {}, {}, {}, {}
     tie_count: dict[str, int] = {}
+    auto_count: dict[str, int] = {}
     for tid, pid in j.tie_pids.items():
+        cnt = auto_count if tid.startswith("auto:") else tie_count
         for e in rec.points3D[pid].track.elements:
             n = rec.images[e.image_id].name
-            tie_count[n] = tie_count.get(n, 0) + 1
+            cnt[n] = cnt.get(n, 0) + 1
     for iid in qids:
         im = rec.images[iid]
         pose = Pose.from_pycolmap(im.cam_from_world())
         poses[im.name] = pose
         cams[im.name] = Camera.from_pycolmap(rec.cameras[im.camera_id])
         info = {"sequence": im.name.split("/")[1], "n_points": int(im.num_points3D),
-                "n_tiepoints": tie_count.get(im.name, 0)}
+                "n_tiepoints": tie_count.get(im.name, 0), "n_auto_tiepoints": auto_count.get(im.name, 0)}
         c = None
         if cov is not None:
             try:
