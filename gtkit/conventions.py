@@ -27,6 +27,8 @@ DJI attitude
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -95,7 +97,9 @@ def rotation_to_dji(R: np.ndarray) -> tuple[float, float, float]:
     At pitch = -90 (exact nadir) yaw and roll are not separable; the roll is then set to 0.
     """
     ned_from_body = _WORLD_FROM_NED.T @ np.asarray(R).T @ _BODY_FROM_CAM.T
-    yaw, pitch, roll = Rotation.from_matrix(ned_from_body).as_euler("ZYX", degrees=True)
+    with warnings.catch_warnings():  # exact nadir is gimbal lock by design; documented above
+        warnings.simplefilter("ignore", UserWarning)
+        yaw, pitch, roll = Rotation.from_matrix(ned_from_body).as_euler("ZYX", degrees=True)
     return float(wrap_deg(yaw)), float(pitch), float(wrap_deg(roll))
 
 

@@ -21,6 +21,9 @@ def small_sample(tmp_path_factory):
     """
     from gtkit.cli import main
 
+    given = os.environ.get("GTKIT_SMALL_SAMPLE")  # developers: reuse a sample generated before
+    if given:
+        return Path(given)
     root = tmp_path_factory.mktemp("sample") / "small"
     assert main(["sample", "create", str(root), "--preset", "small", "--seed", "0"]) == 0
     return root
