@@ -27,3 +27,15 @@ def small_sample(tmp_path_factory):
     root = tmp_path_factory.mktemp("sample") / "small"
     assert main(["sample", "create", str(root), "--preset", "small", "--seed", "0"]) == 0
     return root
+
+
+@pytest.fixture(scope="session")
+def tiny_sample(tmp_path_factory):
+    """The ``tiny`` sample preset (tests only), generated once per session: (root, settings, summary).
+    Read-only by convention, like ``small_sample``."""
+    from gtkit.synth.generate import create_sample
+    from gtkit.synth.settings import load_preset
+
+    root = tmp_path_factory.mktemp("tiny") / "site"
+    settings = load_preset("tiny")
+    return root, settings, create_sample(root, settings, quiet=True)

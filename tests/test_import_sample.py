@@ -23,16 +23,11 @@ pytestmark = pytest.mark.slow  # generating the sample takes about a minute on 2
 
 
 @pytest.fixture(scope="module")
-def site(tmp_path_factory):
-    """A copy of an existing tiny sample (GTKIT_TEST_SAMPLE=DIR), else a freshly generated one."""
+def site(request, tmp_path_factory):
+    """A copy of an existing tiny sample (GTKIT_TEST_SAMPLE=DIR), else of the session's tiny sample."""
     root = tmp_path_factory.mktemp("sample") / "site"
-    given = os.environ.get("GTKIT_TEST_SAMPLE")
-    if given:
-        shutil.copytree(given, root, ignore=shutil.ignore_patterns("work", "exports", "reports"))
-    else:
-        from gtkit.synth.settings import load_preset
-
-        synth.create_sample(root, load_preset("tiny"), quiet=True)
+    given = os.environ.get("GTKIT_TEST_SAMPLE") or request.getfixturevalue("tiny_sample")[0]
+    shutil.copytree(given, root, ignore=shutil.ignore_patterns("work", "exports", "reports"))
     return Project.load(root)
 
 

@@ -34,7 +34,9 @@ PRESET = os.environ.get("GTKIT_SYNTH_PRESET", "tiny")
 
 
 @pytest.fixture(scope="module")
-def site(tmp_path_factory):
+def site(request, tmp_path_factory):
+    if PRESET == "tiny":
+        return request.getfixturevalue("tiny_sample")  # generated once per session, shared
     root = tmp_path_factory.mktemp("synth") / "site"
     s = load_preset(PRESET)
     summary = create_sample(root, s, quiet=True)
