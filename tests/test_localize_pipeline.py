@@ -89,8 +89,10 @@ def test_db_views_without_depth_fail_the_query_and_the_run_goes_on(site):
             shutil.copy(f, backup / v.replace("/", "_"))
             d = np.load(f)["depth"]
             np.savez(f, depth=np.full_like(d, np.nan), valid_fraction=1.0)
-        s = localize.LocalizeSettings(query_glob="queries/seq1/000[12]_W.jpg")
+        s = localize.LocalizeSettings(query_glob="queries/seq1/000[12]_W.jpg", fallback_rounds=0)
         out = localize.run(site, s, ablation="broken-depth", executor=ExecutorSettings("serial"))
+        s1 = localize.LocalizeSettings(query_glob="queries/seq1/0001_W.jpg")  # default: one fallback round
+        out1 = localize.run(site, s1, ablation="broken-depth-fallback", executor=ExecutorSettings("serial"))
     finally:
         for v in broken:
             shutil.copy(backup / v.replace("/", "_"), ddir / f"{v}.npz")
@@ -99,6 +101,16 @@ def test_db_views_without_depth_fail_the_query_and_the_run_goes_on(site):
     assert not bad["ok"] and "database view has no valid depth" in bad["reason"]
     assert all(v["problem"] == "database view has no valid depth" for v in bad["views"])
     assert res["queries/seq1/0002_W.jpg"]["ok"]
+    # with the fallback the same query is localized from the next views, and the report says so
+    fb = json.loads((out1 / "status.json").read_text())["queries"][0]
+    assert fb["ok"] and fb["fallback_round"] == 1
+    assert "database view has no valid depth" in fb["failed_rounds"][0]
+    assert [v["view"] for v in fb["views"][:len(broken)]] == broken
+    assert {v for v, _s in fb["fallback_retrieved"]}.isdisjoint(broken)
+    truth = read_poses(site / "truth" / "poses.txt")["queries/seq1/0001_W.jpg"]
+    got = read_poses(out1 / "poses.txt")["queries/seq1/0001_W.jpg"]
+    m, deg = got.error_to(truth)
+    assert m < 1.0 and deg < 1.0, (m, deg)
 
 
 def test_dask_local_cluster_renders_and_localizes_like_local_processes(site):

@@ -9,7 +9,8 @@ from gtkit.conventions import angle_between_deg, dji_to_rotation, gravity_in_cam
 from gtkit.localize.grid import grid_positions, make_views
 from gtkit.localize.lift import lift, sample_depth
 from gtkit.localize.pnp import PnPSettings, gravity_pnp_ransac
-from gtkit.localize.prior import gps_filter, rotation_filter
+from gtkit.localize.localize import rank_candidates
+from gtkit.localize.prior import footprint_filter, gps_filter, look_at_points, rotation_filter
 from gtkit.pose import Pose
 
 CAM = Camera.pinhole(800, 600, 700.0)
@@ -125,3 +126,50 @@ def test_vlad_ranks_the_same_place_first():
     for i, p in enumerate(places):
         q = vlad.describe(p[rng.choice(300, 200, replace=False)])  # a partial view of place i
         assert int(np.argmax(G @ q)) == i
+
+
+def test_look_at_points_meet_the_ground_where_the_axis_does():
+    ground = 19.0
+    # an oblique query 62 m above ground, DJI pitch -33, yaw -135 (looking south-west)
+    q = Pose.from_dji(-135.0, -33.0, 0.0, [5.0, 110.0, ground + 62.0])
+    nadir = Pose.from_dji(40.0, -90.0, 0.0, [-20.0, 30.0, ground + 100.0])
+    up = Pose.from_dji(90.0, 10.0, 0.0, [0.0, 0.0, ground + 50.0])  # above the horizon: capped
+    C = np.array([q.center, nadir.center, up.center])
+    A = np.array([q.R[2], nadir.R[2], up.R[2]])
+    la = look_at_points(C, A, ground, max_dist=300.0)
+    d = 62.0 / np.tan(np.radians(33.0))
+    expect_q = np.array([5.0, 110.0]) + d * np.array([np.sin(np.radians(-135.0)), np.cos(np.radians(-135.0))])
+    assert np.allclose(la[0], expect_q, atol=1e-6)
+    assert np.allclose(la[1], [-20.0, 30.0], atol=1e-6)
+    assert np.allclose(la[2], [300.0, 0.0], atol=1e-6)  # yaw 90 = east, 300 m ahead
+    # the ray through the look-at point really lies on the axis (check in 3D)
+    X = np.r_[la[0], ground]
+    assert CAM.project(q.transform(X[None]))[0][0] == pytest.approx([400.0, 300.0], abs=1e-6)
+
+
+def test_footprint_prior_pairs_a_low_oblique_query_with_a_high_view_of_the_same_ground():
+    ground = 0.0
+    target = np.array([0.0, 0.0])
+    # query 60 m up, pitch -33, looking north at the target; database views 100 m up, pitch -45
+    dq = 60.0 / np.tan(np.radians(33.0))
+    q = Pose.from_dji(0.0, -33.0, 0.0, [0.0, -dq, 60.0])
+    same = Pose.from_dji(0.0, -45.0, 0.0, [0.0, -100.0, 100.0])       # looks at the target
+    above = Pose.from_dji(0.0, -90.0, 0.0, [0.0, -dq, 100.0])         # nadir, right above the query
+    la_q = look_at_points(q.center[None], q.R[2][None], ground)[0]
+    assert np.allclose(la_q, target, atol=1e-6)
+    V = np.array([same.center, above.center])
+    la_v = look_at_points(V, np.array([same.R[2], above.R[2]]), ground)
+    assert footprint_filter(la_q, la_v, 30.0).tolist() == [True, False]
+    # a camera-centre radius keeps the wrong one (right above the query) and drops the right one
+    # (7.6 m away) -- the point of comparing where the cameras look
+    assert gps_filter(q.center[:2], V, 5.0).tolist() == [False, True]
+
+
+def test_rank_candidates_puts_the_position_prior_first_and_fills_up():
+    score = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4])
+    keep = np.array([True, True, False, True, True, True])
+    near = np.array([False, False, True, True, False, True])
+    assert rank_candidates(score, keep, None, 4).tolist() == [0, 1, 3, 4]
+    assert rank_candidates(score, keep, near, 4).tolist() == [3, 5, 0, 1]  # index 2 fails keep
+    assert rank_candidates(score, keep, near, 10).tolist() == [3, 5, 0, 1, 4]
+    assert rank_candidates(score, np.zeros(6, bool), near, 3).tolist() == []

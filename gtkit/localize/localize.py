@@ -58,8 +58,15 @@ class LocalizeSettings:
     vlad_words: int = 64
     rotation_prior: bool = True        # filter database views by the IMU prior (paper: on)
     gamma_o: float = 30.0              # deg, per angle (paper)
-    gps_radius_m: float | None = None  # keep views within this horizontal radius of the GPS prior
+    gps_radius_m: float | None = None  # keep views whose camera centre lies within this radius of the GPS prior
+    # Position prior (not in the paper, which is GPS-denied; ablation 'no-gps' switches it off):
+    # when the photo has GPS + altitude + gimbal angles, rank first the views whose look-at point
+    # (optical axis meets the database's ground level) lies within this radius of the query's.
+    # 75 m = the largest grid interval alpha_t: every ground point lies within alpha_t/sqrt(2) = 53 m
+    # of a grid position of every level, leaving ~20 m for GPS/altitude error. None = off.
+    gps_footprint_radius_m: float | None = 75.0
     top_k: int = 3                     # retrieved views per query (paper)
+    fallback_rounds: int = 1           # when PnP fails on the top-k, try the next top-k views (0 = paper)
     max_rel_jump: float = 0.03         # depth discontinuity test for lifting (relative)
     pnp: PnPSettings = PnPSettings()   # gravity_deg = gamma_eps (5 deg; paper 2); None = no check
     db_heights: tuple[float, ...] | None = None        # use only these database levels
@@ -71,6 +78,9 @@ class LocalizeSettings:
 # Ablations (the paper's tables): each names its own output folder work/localize-<name>/.
 ABLATIONS: dict[str, dict] = {
     "default": {},
+    "paper": {"gps_footprint_radius_m": None, "fallback_rounds": 0},          # the paper's method as published
+    "no-gps": {"gps_footprint_radius_m": None},                               # GPS-denied (paper setting)
+    "no-fallback": {"fallback_rounds": 0},
     "no-rot-prior": {"rotation_prior": False},
     "no-gravity": {"pnp": {"gravity_deg": None}},
     "gravity-2deg": {"pnp": {"gravity_deg": 2.0}},                                   # the paper's gamma_eps
@@ -237,9 +247,39 @@ def _context(ctx: dict):
         _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=g["G"][rows],
                   ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
                   centers=np.array([v.pose.center for v in db.views]).reshape(-1, 3),
+                  look_at=_view_look_at(db),
                   h5=h5py.File(ctx["features"], "r"), extractor=_extractor(s.features, db=False),
                   matcher=make_matcher(s.matcher, ratio=s.ratio), cams=read_intrinsics(proj.paths.cameras))
     return _W
+
+
+def _view_look_at(db: Database) -> np.ndarray:
+    """(N, 2) look-at points of the database views on their ground level (centre z minus height)."""
+    from .prior import look_at_points
+
+    if not db.views:
+        return np.zeros((0, 2))
+    centers = np.array([v.pose.center for v in db.views])
+    ground = float(np.median(centers[:, 2] - np.array([v.height for v in db.views])))
+    axes = np.array([np.asarray(v.pose.R)[2] for v in db.views])  # camera +z in the world
+    return look_at_points(centers, axes, ground)
+
+
+def _ground_level(db: Database) -> float:
+    return float(np.median([v.pose.center[2] - v.height for v in db.views])) if db.views else 0.0
+
+
+def rank_candidates(score: np.ndarray, keep: np.ndarray, near: np.ndarray | None, n: int) -> np.ndarray:
+    """Indices of up to ``n`` views passing ``keep``, best global-descriptor score first; when
+    ``near`` (the position prior) is given, every view passing it comes before any that does not."""
+    s = np.where(keep, score, -np.inf)
+    idx = np.flatnonzero(keep)
+    if near is None:
+        return idx[np.argsort(-s[idx], kind="stable")][:n]
+    first = idx[near[idx]]
+    rest = idx[~near[idx]]
+    return np.concatenate([first[np.argsort(-s[first], kind="stable")],
+                           rest[np.argsort(-s[rest], kind="stable")]])[:n].astype(int)
 
 
 def localize_query(task) -> dict:
@@ -272,10 +312,7 @@ def _localize_query(W: dict, name: str) -> dict:
     import cv2
 
     from ..io.exif import read_photo_meta
-    from .features import read_features
-    from .lift import lift
-    from .pnp import gravity_pnp_ransac
-    from .prior import gps_filter, rotation_filter
+    from .prior import footprint_filter, gps_filter, look_at_points, rotation_filter
 
     s: LocalizeSettings = W["s"]
     proj: Project = W["project"]
@@ -323,12 +360,47 @@ def _localize_query(W: dict, name: str) -> dict:
                          f"(yaw, pitch, roll = {', '.join(f'{a:.1f}' for a in rec.get('prior_ypr', []))})"
                          if s.rotation_prior and prior_R is not None else "no database view passes the priors")
         return rec
+    near = None
+    if (s.gps_footprint_radius_m is not None and meta.has_gps and meta.altitude is not None
+            and prior_R is not None):
+        c = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude))[:3]
+        la = look_at_points(c[None], np.asarray(prior_R)[2][None], _ground_level(db))[0]
+        near = footprint_filter(la, W["look_at"], s.gps_footprint_radius_m)
+        rec["gps_footprint"] = {"look_at_xy": [round(float(x), 2) for x in la],
+                                "n_near": int((near & keep).sum()), "radius_m": s.gps_footprint_radius_m}
     score = W["G"] @ W["vlad"].describe(fq.desc)
-    score[~keep] = -np.inf
-    order = np.argsort(-score)[:min(s.top_k, int(keep.sum()))]
-    rec["retrieved"] = [[db.views[i].name, float(score[i])] for i in order]
+    ranked = rank_candidates(score, keep, near, s.top_k * (1 + max(0, s.fallback_rounds)))
     sec["retrieval"] = time.perf_counter() - t
-    # matching + lifting
+    rounds = [ranked[k:k + s.top_k] for k in range(0, len(ranked), s.top_k)]
+    # round 0 = the top-k (what retrieval metrics score); later rounds = fallback views
+    rec["retrieved"] = [[db.views[i].name, float(score[i])] for i in rounds[0]] if rounds else []
+    failed = []
+    for rnd, order in enumerate(rounds):
+        if rnd:
+            failed.append(rec["reason"])
+            rec["reason"] = None
+            rec.setdefault("fallback_retrieved", []).extend([db.views[i].name, float(score[i])] for i in order)
+            log.info("localize: %s: top-%d failed (%s); falling back to the next %d views", name, s.top_k,
+                     failed[-1], len(order))
+        rec["fallback_round"] = rnd
+        _match_and_solve(W, rec, fq, cam, prior_R, order, sec)
+        if rec["ok"]:
+            break
+    if failed:
+        rec["failed_rounds"] = failed
+        if not rec["ok"]:
+            rec["reason"] = f"{rec['reason']} (also with {len(failed)} fallback round(s) of {s.top_k} more views)"
+    return rec
+
+
+def _match_and_solve(W: dict, rec: dict, fq, cam: Camera, prior_R, order, sec: dict) -> None:
+    """Match the query with the views ``order``, lift, gravity-guided PnP; fills ``rec``."""
+    from .features import read_features
+    from .lift import lift
+    from .pnp import gravity_pnp_ransac
+
+    s: LocalizeSettings = W["s"]
+    db: Database = W["db"]
     pin = cam.pinhole_part()
     uv_q, X_all, per_view = [], [], []
     for i in order:
@@ -352,7 +424,7 @@ def _localize_query(W: dict, name: str) -> dict:
             info["n_lifted"] = 0
         per_view.append(info)
         sec["lifting"] += time.perf_counter() - t
-    rec["views"] = per_view
+    rec["views"] = rec.get("views", []) + per_view
     n_lift = int(sum(len(x) for x in X_all))
     rec["n_lifted"] = n_lift
     t = time.perf_counter()
@@ -361,22 +433,21 @@ def _localize_query(W: dict, name: str) -> dict:
         rec["reason"] = ("no 2D-3D correspondences: " + ("; ".join(sorted(probs)) if probs else
                          f"{sum(i['n_matches'] for i in per_view)} matches with the retrieved views "
                          f"(query has {len(fq)} keypoints), none lifted"))
-        return rec
+        return
     uv = np.concatenate(uv_q)
     X = np.concatenate(X_all)
     if cam.has_distortion:  # PnP on the undistorted pinhole part
         uv = pin.world_to_image(cam.image_to_world(uv))
     g = gravity_in_camera(prior_R) if prior_R is not None else None
     r = gravity_pnp_ransac(uv, X, pin, g, s.pnp)
-    sec["pnp"] = time.perf_counter() - t
+    sec["pnp"] += time.perf_counter() - t
     rec["pnp"] = r.summary()
     if not r.ok:
         rec["reason"] = r.reason
-        return rec
+        return
     rec["ok"] = True
     rec["q"] = r.pose.q.tolist()
     rec["t"] = r.pose.t.tolist()
-    return rec
 
 
 # --- the stage ----------------------------------------------------------------------------------
@@ -418,7 +489,8 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
     out.mkdir(parents=True, exist_ok=True)
     write_poses(out / "poses.txt", poses, header=f"gtkit localize ({ablation}); failures are absent, "
                 "see status.json")
-    pairs = [f"{r['name']} {v} {k + 1}" for r in results for k, (v, _s) in enumerate(r.get("retrieved", []))]
+    pairs = [f"{r['name']} {v} {k + 1}" for r in results
+             for k, (v, _s) in enumerate(r.get("retrieved", []) + r.get("fallback_retrieved", []))]
     write_text(out / "pairs.txt", "# query database_view rank\n" + "\n".join(pairs) + "\n")
     n_ok = len(poses)
     write_json(out / "status.json", {

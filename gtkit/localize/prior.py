@@ -32,3 +32,32 @@ def gps_filter(prior_xy, view_centers: np.ndarray, radius_m: float) -> np.ndarra
     """Boolean mask of the views whose camera centre lies within ``radius_m`` (horizontal)."""
     c = np.asarray(view_centers, dtype=np.float64)[:, :2]
     return np.linalg.norm(c - np.asarray(prior_xy, dtype=np.float64)[None, :2], axis=1) <= radius_m
+
+
+def look_at_points(centers: np.ndarray, axes: np.ndarray, ground_z: float, max_dist: float = 300.0) -> np.ndarray:
+    """(N, 2) horizontal points where each camera's optical axis meets the plane ``z = ground_z``.
+
+    ``axes`` are the optical axes in the world (unit, camera +z). The ground distance is capped at
+    ``max_dist`` metres (an axis near the horizon, or one pointing up, lands ``max_dist`` ahead
+    along its horizontal direction; a vertical axis lands below the camera).
+    """
+    c = np.atleast_2d(np.asarray(centers, dtype=np.float64))
+    a = np.atleast_2d(np.asarray(axes, dtype=np.float64))
+    h = np.maximum(c[:, 2] - ground_z, 0.0)
+    hxy = np.linalg.norm(a[:, :2], axis=1)
+    down = -a[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dist = np.where(down > 1e-9, h * hxy / np.maximum(down, 1e-9), np.inf)
+    dist = np.minimum(dist, max_dist)
+    unit = np.where(hxy[:, None] > 1e-12, a[:, :2] / np.maximum(hxy, 1e-12)[:, None], 0.0)
+    return c[:, :2] + unit * dist[:, None]
+
+
+def footprint_filter(prior_look_at, views_look_at: np.ndarray, radius_m: float) -> np.ndarray:
+    """Boolean mask of the views whose look-at point lies within ``radius_m`` of the prior's.
+
+    Comparing where the cameras *look* rather than where they *are* lets a 60 m oblique query meet
+    a 100 m or 150 m database view of the same ground, whose camera centres lie tens of metres apart.
+    """
+    d = np.asarray(views_look_at, dtype=np.float64)[:, :2] - np.asarray(prior_look_at, dtype=np.float64)[None, :2]
+    return np.linalg.norm(d, axis=1) <= radius_m
