@@ -4,6 +4,16 @@ Per query: local features -> global descriptor -> rotation prior filter (gamma_o
 GPS radius -> top-k database views -> matching against each -> lifting through the rendered
 depth -> gravity-guided P3P RANSAC (gamma_eps) -> refined pose, or a failure with its reason.
 
+Two additions to the paper's method (both recorded per query in ``status.json``; ablation
+``paper`` switches both off, ``no-gps`` runs GPS-denied as the paper does):
+
+- GPS footprint prior (``gps_footprint_radius_m``): when the photo has GPS, altitude and gimbal
+  angles, the views whose look-at point on the ground lies near the query's are ranked before all
+  others (``gps_footprint`` in the status). Global descriptors alone fail on repetitive fields.
+- Fallback (``fallback_rounds``): when PnP fails on the top-k views, the next top-k of the ranking
+  are tried (``fallback_round``, ``fallback_retrieved``, ``failed_rounds``). Retrieval metrics
+  score the first top-k only.
+
 Offline parts, cached under ``work/localize_db/<extractor conf>/`` and shared by every run and
 ablation: database features (``features.h5``, one group per view), the VLAD codebook and the
 database's global descriptors.
@@ -66,7 +76,12 @@ class LocalizeSettings:
     # of a grid position of every level, leaving ~20 m for GPS/altitude error. None = off.
     gps_footprint_radius_m: float | None = 75.0
     top_k: int = 3                     # retrieved views per query (paper)
-    fallback_rounds: int = 1           # when PnP fails on the top-k, try the next top-k views (0 = paper)
+    # When PnP fails on the top-k views, try the next top-k of the ranking, up to this many more times
+    # (0 = the paper). Costs time only on queries that would otherwise fail (at most
+    # (1 + fallback_rounds) * top_k matchings, ~0.2 s each). VLAD ranks the right view of repetitive
+    # fields (the small sample's vegetation sequence) 5th-13th of ~20-40 rotation-prior candidates, so a
+    # GPS-denied run needs up to 4 rounds there; with the GPS footprint prior none is needed.
+    fallback_rounds: int = 5
     max_rel_jump: float = 0.03         # depth discontinuity test for lifting (relative)
     pnp: PnPSettings = PnPSettings()   # gravity_deg = gamma_eps (5 deg; paper 2); None = no check
     db_heights: tuple[float, ...] | None = None        # use only these database levels
