@@ -22,6 +22,7 @@ from ..io.exif import read_photo_meta
 from ..io.odm import read_gcp_list, read_geo_txt
 from ..io.poses import read_intrinsics, write_intrinsics, write_poses
 from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
+from . import quiet_colmap
 from .database import (CameraGroup, FeatureSettings, MatchSettings, build_database, failure_reason,
                        image_diagnostics, match)
 from .geometry import RegistrationError, model_cameras, model_poses
@@ -216,6 +217,7 @@ def build_block(project: Project, names: list[str], out: Path, pairings: list[st
 
 def run_reference(project: Project | str | Path, settings: SfmSettings | None = None, force: bool = False) -> dict:
     """``gtkit sfm DIR --block reference``."""
+    quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
     settings = settings or SfmSettings()
     P = project.paths
@@ -243,6 +245,7 @@ def run_queries(project: Project | str | Path, settings: SfmSettings | None = No
     with its reason; the others still finish."""
     import json
 
+    quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
     settings = settings or SfmSettings()
     P = project.paths

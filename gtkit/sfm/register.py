@@ -38,6 +38,7 @@ from ..io.poses import write_covariances, write_intrinsics, write_poses
 from ..io.tiepoints import TiePoint, read_tiepoints
 from ..pose import Pose
 from ..project import Project, file_fingerprint, mark_stage_done, stage_done
+from . import quiet_colmap
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
 from .crossmatch import CrossMatchSettings, cross_matches
 from .geometry import (RegistrationError, model_cameras, model_poses, reprojection_px, robust_sim3, sim3_apply,
@@ -353,6 +354,7 @@ def _count_query_images(P, seq_dirs) -> int:
 
 def run(project: Project | str | Path, settings: RegisterSettings | None = None, force: bool = False) -> dict:
     """``gtkit register DIR``: pseudo-GT poses of every registered query photo."""
+    quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
     settings = settings or RegisterSettings()
     P = project.paths
