@@ -13,6 +13,7 @@ the caller says so; see :func:`load_model`.
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -127,13 +128,17 @@ def read_mesh_file(path: str | Path) -> Mesh:
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise GtkitError(f"not a mesh file (expected one of {', '.join(MESH_SUFFIXES)})", path)
     try:
-        loaded = trimesh.load(str(path), process=False, maintain_order=True)
+        with warnings.catch_warnings():  # trimesh's texture code warns on untextured parts
+            warnings.simplefilter("ignore", RuntimeWarning)
+            loaded = trimesh.load(str(path), process=False, maintain_order=True)
     except Exception as e:  # noqa: BLE001 - trimesh raises many types; all mean "unreadable"
         raise GtkitError(f"not a readable mesh ({type(e).__name__}: {str(e)[:120]})", path) from None
     if isinstance(loaded, trimesh.Scene) and len(loaded.geometry) > 1 and path.suffix.lower() == ".obj":
         # trimesh 4/5 with maintain_order=True drops the uv of every OBJ object/material after the
         # first (its faces index the file's global vertex list); load multi-part OBJs without it
-        loaded = trimesh.load(str(path), process=False, maintain_order=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            loaded = trimesh.load(str(path), process=False, maintain_order=False)
     if isinstance(loaded, trimesh.Scene):
         geoms = []
         for node in loaded.graph.nodes_geometry:
