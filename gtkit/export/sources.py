@@ -16,16 +16,28 @@ from ..errors import GtkitError
 from ..geo import GeoFrame, crs_name, parse_crs
 from ..io.mesh import MESH_SUFFIXES, load_model, read_offset_sidecar, sidecar_path
 from ..project import Paths
-from .surface import POINT_SUFFIXES, MeshSurface, PointSurface, read_point_cloud
+from .surface import POINT_SUFFIXES, MeshSurface, PointSurface, TiledSurface, read_point_cloud
 
 REFERENCE_MODEL = "reference.obj"
 
 
+def is_tiled(path: Path) -> bool:
+    """A tiled model is given as its folder or its ``metadata.xml``."""
+    return path.is_dir() or path.name == "metadata.xml"
+
+
 def reference_model(paths: Paths) -> Path:
-    """The project's reference textured mesh: ``model/reference.obj``, else the only mesh in model/."""
+    """The project's reference model: ``model/reference.obj``, else a tiled model imported with
+    ``gtkit import model`` (project.toml [imports.model]), else the only mesh in model/."""
+    import tomllib
+
     p = paths.model / REFERENCE_MODEL
     if p.is_file():
         return p
+    if paths.project_toml.is_file():
+        imported = tomllib.loads(paths.project_toml.read_text()).get("imports", {}).get("model", {})
+        if imported.get("format") == "tiled" and Path(imported.get("source", "")).exists():
+            return Path(imported["source"])
     found = sorted(f for f in paths.model.glob("*") if f.suffix.lower() in MESH_SUFFIXES) if paths.model.is_dir() else []
     if len(found) == 1:
         return found[0]
@@ -46,6 +58,10 @@ def is_point_cloud(path: Path) -> bool:
 
 
 def input_fingerprint_paths(path: Path) -> list[Path]:
+    if is_tiled(path):
+        meta = path / "metadata.xml" if path.is_dir() else path
+        index = meta.parent / "tiles_index.json"
+        return [meta, index]
     return [path, sidecar_path(path)]
 
 
@@ -57,6 +73,12 @@ def load_surface(path: str | Path, frame: GeoFrame | None = None, crs: str | Non
     with an origin at the data's minimum corner rounded to whole metres.
     """
     path = Path(path)
+    if is_tiled(path) and path.exists():
+        if frame is None:
+            raise GtkitError("a tiled model is exported inside a project (its frame); give the project", path)
+        from ..io.tiled import read_tiled
+
+        return TiledSurface(read_tiled(path, frame)), frame
     if not path.is_file():
         raise GtkitError("input not found", path)
     suffix = path.suffix.lower()

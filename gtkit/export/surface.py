@@ -83,12 +83,47 @@ class MeshSurface:
     def rasterize(self, grid: Grid, with_rgb: bool) -> SurfaceRaster:
         from ..render.renderer import Renderer
 
-        r = Renderer(self.mesh)
+        r = Renderer()
+        # one upload origin for every part, the model's centre: the same raster as the model
+        # delivered as tiles (gtkit.render.tiles uses that origin), bit for bit
+        r.add_mesh(self.mesh, origin=self.mesh.bounds().mean(0))
         try:
             res = r.render_ortho(grid.xmin, grid.ymin, grid.xmax, grid.ymax, grid.res, with_rgb=with_rgb)
         finally:
             r.release()
         if res.depth.shape != grid.shape:  # render_ortho rounds the extent; the grid is whole cells
+            raise GtkitError(f"orthographic render gave {res.depth.shape}, expected {grid.shape}")
+        return SurfaceRaster(res.depth.astype(np.float32), res.rgb, grid)
+
+
+class TiledSurface:
+    """A tiled model (ContextCapture layout, :mod:`gtkit.io.tiled`) as a surface source: the
+    raster is rendered window by window with only the tiles each window meets resident, and is
+    identical to rendering the same model loaded as one mesh."""
+
+    kind = "tiled mesh"
+
+    def __init__(self, model, budget_mb: float = 512.0):
+        self.model = model
+        self.budget_mb = budget_mb
+
+    def bounds(self) -> np.ndarray:
+        return self.model.bounds()
+
+    def detail(self) -> float:
+        """The detail of the smallest tile (one tile read; tiles of one delivery share a detail)."""
+        smallest = min(self.model.tiles.values(), key=lambda t: t.size)
+        return MeshSurface(self.model.load_tile(smallest.name)).detail()
+
+    def rasterize(self, grid: Grid, with_rgb: bool) -> SurfaceRaster:
+        from ..render.tiles import TileStreamer
+
+        streamer = TileStreamer(self.model, budget_mb=self.budget_mb)
+        try:
+            res = streamer.render_ortho(grid.xmin, grid.ymin, grid.xmax, grid.ymax, grid.res, with_rgb=with_rgb)
+        finally:
+            streamer.renderer.release()
+        if res.depth.shape != grid.shape:
             raise GtkitError(f"orthographic render gave {res.depth.shape}, expected {grid.shape}")
         return SurfaceRaster(res.depth.astype(np.float32), res.rgb, grid)
 
