@@ -96,3 +96,19 @@ def test_dsm_export_from_tiles_equals_dsm_from_the_single_mesh(site, tmp_path):
         za, zb = fa.read(1), fb.read(1)
     assert (za != fa.nodata).mean() > 0.9
     np.testing.assert_array_equal(za, zb)
+
+
+def test_ortho_export_from_tiles_equals_ortho_from_the_single_mesh(site, tmp_path):
+    import rasterio
+
+    from gtkit.export import ortho
+
+    P = site.paths
+    ref_obj = P.model / "reference.obj"
+    tiles = tile_model_file(ref_obj, tmp_path / "tiles", site.frame, tile_size=50.0, texture="share")
+    settings = ortho.OrthoSettings(resolution=0.5)
+    a = ortho.run(site, settings, input=tiles, out=tmp_path / "ortho_tiles.tif")
+    b = ortho.run(site, settings, input=ref_obj, out=tmp_path / "ortho_mesh.tif")
+    with rasterio.open(a) as fa, rasterio.open(b) as fb:
+        assert fa.transform == fb.transform and fa.count == fb.count >= 3
+        np.testing.assert_array_equal(fa.read(), fb.read())
