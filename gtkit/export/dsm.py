@@ -30,10 +30,10 @@ import numpy as np
 
 from ..errors import GtkitError
 from ..geo import GeoFrame, crs_name
-from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done
+from ..project import Project, settings_dict
 from .geotiff import write_geotiff
 from .grid import Grid, nice_resolution
-from .sources import input_fingerprint_paths, load_surface, reference_model
+from .sources import load_surface, run_raster_stage
 from .surface import MeshSurface, PointSurface, SurfaceRaster, rasterize_surface
 
 log = logging.getLogger(__name__)
@@ -110,19 +110,8 @@ def run(project: Project | str | Path, settings: DsmSettings | None = None, inpu
     Skips when the output exists and settings and inputs are unchanged."""
     settings = settings or DsmSettings()
     proj = project if isinstance(project, Project) else Project.load(project)
-    src = Path(input) if input is not None else reference_model(proj.paths)
-    out = Path(out) if out is not None else proj.paths.dsm
-    stage_dir = proj.paths.stage(STAGE)
-    inputs = {"source": str(src), "files": {str(p): file_fingerprint(p) for p in input_fingerprint_paths(src)},
-              "crs": proj.frame.crs_spec, "origin": list(proj.frame.origin), "given_crs": crs,
-              "given_offset": None if offset is None else list(map(float, offset)), "out": str(out)}
-    if out.is_file() and stage_done(stage_dir, settings, inputs):
-        log.info("DSM %s is up to date (settings unchanged); skipping", out)
-        return out
-    source, frame = load_surface(src, proj.frame, crs, offset)
-    summary = make_dsm(source, frame, out, settings, str(src))
-    mark_stage_done(stage_dir, settings, inputs, **summary)
-    return out
+    return run_raster_stage(proj, settings, input, crs, offset, out, default_out=proj.paths.dsm, stage=STAGE,
+                            make=make_dsm, label="DSM")
 
 
 def run_file(input: str | Path, out: str | Path, settings: DsmSettings | None = None, crs: str | None = None,

@@ -28,8 +28,8 @@ from ..errors import GtkitError
 from ..geo import crs_name
 from ..io.atomic import atomic_path, write_json
 from ..io.mesh import Mesh, MeshPart, load_model, read_mesh_file, sidecar_path, write_obj, write_offset_sidecar
-from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done
-from .sources import input_fingerprint_paths, reference_model
+from ..project import Project, mark_stage_done, settings_dict, stage_done
+from .sources import reference_model, stage_inputs
 
 log = logging.getLogger(__name__)
 
@@ -59,9 +59,7 @@ def run(project: Project | str | Path, settings: MeshExportSettings | None = Non
     out_dir = Path(out_dir) if out_dir is not None else proj.paths.mesh_export
     out = out_dir / f"{settings.name}.{settings.format}"
     stage_dir = proj.paths.stage(f"{STAGE}_{settings.format}")
-    inputs = {"source": str(src), "files": {str(p): file_fingerprint(p) for p in input_fingerprint_paths(src)},
-              "crs": proj.frame.crs_spec, "origin": list(proj.frame.origin), "given_crs": crs,
-              "given_offset": None if offset is None else list(map(float, offset)), "out": str(out)}
+    inputs = stage_inputs(proj, src, crs, offset, out)
     if out.is_file() and stage_done(stage_dir, settings, inputs):
         log.info("mesh %s is up to date (settings unchanged); skipping", out)
         return out

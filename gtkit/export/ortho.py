@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done
+from ..project import Project, settings_dict
 from .dsm import plan_grid
 from .geotiff import write_geotiff
-from .sources import input_fingerprint_paths, load_surface, reference_model
+from .sources import load_surface, run_raster_stage
 from .surface import rasterize_surface
 
 log = logging.getLogger(__name__)
@@ -50,19 +50,8 @@ def run(project: Project | str | Path, settings: OrthoSettings | None = None, in
     """The orthophoto stage: the reference model (or ``input``) -> ``exports/ortho.tif``."""
     settings = settings or OrthoSettings()
     proj = project if isinstance(project, Project) else Project.load(project)
-    src = Path(input) if input is not None else reference_model(proj.paths)
-    out = Path(out) if out is not None else proj.paths.ortho
-    stage_dir = proj.paths.stage(STAGE)
-    inputs = {"source": str(src), "files": {str(p): file_fingerprint(p) for p in input_fingerprint_paths(src)},
-              "crs": proj.frame.crs_spec, "origin": list(proj.frame.origin), "given_crs": crs,
-              "given_offset": None if offset is None else list(map(float, offset)), "out": str(out)}
-    if out.is_file() and stage_done(stage_dir, settings, inputs):
-        log.info("orthophoto %s is up to date (settings unchanged); skipping", out)
-        return out
-    source, frame = load_surface(src, proj.frame, crs, offset)
-    summary = make_ortho(source, frame, out, settings, str(src))
-    mark_stage_done(stage_dir, settings, inputs, **summary)
-    return out
+    return run_raster_stage(proj, settings, input, crs, offset, out, default_out=proj.paths.ortho, stage=STAGE,
+                            make=make_ortho, label="orthophoto")
 
 
 def run_file(input: str | Path, out: str | Path, settings: OrthoSettings | None = None, crs: str | None = None,

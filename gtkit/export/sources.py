@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import GtkitError
 from ..geo import GeoFrame, crs_name, parse_crs
 from ..io.mesh import MESH_SUFFIXES, load_model, read_offset_sidecar, sidecar_path
-from ..project import Paths
+from ..project import Paths, file_fingerprint
 from .surface import POINT_SUFFIXES, MeshSurface, PointSurface, TiledSurface, read_point_cloud
 
 REFERENCE_MODEL = "reference.obj"
@@ -112,3 +112,32 @@ def load_surface(path: str | Path, frame: GeoFrame | None = None, crs: str | Non
 def _origin_of(xyz: np.ndarray) -> tuple[float, float, float]:
     lo = np.asarray(xyz).min(0)
     return tuple(float(math.floor(v)) for v in lo)
+
+
+def stage_inputs(project, src: Path, crs: str | None, offset, out: Path) -> dict:
+    """What an export stage's output depends on besides its settings (its resume key)."""
+    return {"source": str(src), "files": {str(p): file_fingerprint(p) for p in input_fingerprint_paths(src)},
+            "crs": project.frame.crs_spec, "origin": list(project.frame.origin), "given_crs": crs,
+            "given_offset": None if offset is None else list(map(float, offset)), "out": str(out)}
+
+
+def run_raster_stage(project, settings, input, crs, offset, out, *, default_out: Path, stage: str,
+                     make, label: str) -> Path:
+    """The body every raster export stage shares (DSM, orthophoto): the reference model (or
+    ``input``) -> ``out`` (default ``default_out``) through ``make(source, frame, out, settings,
+    name)``; skipped when the output exists and settings and inputs are unchanged."""
+    import logging
+
+    from ..project import mark_stage_done, stage_done
+
+    src = Path(input) if input is not None else reference_model(project.paths)
+    out = Path(out) if out is not None else default_out
+    stage_dir = project.paths.stage(stage)
+    inputs = stage_inputs(project, src, crs, offset, out)
+    if out.is_file() and stage_done(stage_dir, settings, inputs):
+        logging.getLogger(__name__).info("%s %s is up to date (settings unchanged); skipping", label, out)
+        return out
+    source, frame = load_surface(src, project.frame, crs, offset)
+    summary = make(source, frame, out, settings, str(src))
+    mark_stage_done(stage_dir, settings, inputs, **summary)
+    return out
