@@ -15,26 +15,21 @@ Every stage resumes: a second run with the same settings only re-reads finished 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
-import time
 from pathlib import Path
 
 from gtkit.errors import GtkitError
 from gtkit.io.atomic import write_json
 from gtkit.project import PROJECT_FILE, Paths
 
+from ._timing import timed
+
 log = logging.getLogger("full")
 
 
 def _timed(times: dict, name: str, fn, *a, **kw):
-    log.info("== %s ...", name)
-    t = time.time()
-    out = fn(*a, **kw)
-    times[name] = round(time.time() - t, 1)
-    log.info("== %s done in %.1f s", name, times[name])
-    return out
+    return timed(times, name, fn, *a, log=log, **kw)
 
 
 def main(root: str | Path, preset: str = "small", seed: int = 0) -> dict:

@@ -17,9 +17,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import time
 
 from gtkit.project import Project
+
+from ._timing import timed
 from gtkit.sfm import blocks, register, report
 
 log = logging.getLogger("pseudo_gt")
@@ -32,12 +33,7 @@ def main(root: str, sfm: blocks.SfmSettings | None = None, reg: register.Registe
     times = {}
 
     def stage(name, fn, *a, **kw):
-        log.info("[%s] running ...", name)
-        t = time.time()
-        out = fn(*a, **kw)
-        times[name] = round(time.time() - t, 1)
-        log.info("[%s] done in %.1f s", name, times[name])
-        return out
+        return timed(times, name, fn, *a, log=log, **kw)
 
     ref = stage("sfm_reference", blocks.run_reference, project, sfm, force=force)
     qb = {}
