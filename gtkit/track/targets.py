@@ -34,6 +34,7 @@ point itself.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from dataclasses import dataclass
@@ -43,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GtkitError
+from ..io.atomic import write_text
 
 FOOT_POINTS = ("centre", "bottom_centre")
 
@@ -213,3 +215,31 @@ def resolve_images(dets: list[Detection], query_names: list[str], source: Path) 
                              "give its path relative to images/", source)
         else:
             raise GtkitError(f"{d.source}: image {d.image!r} is not a query photo of this project", source)
+
+
+def detections_csv(dets: list[Detection], comment: str = "") -> str:
+    """The CSV text :func:`read_csv` reads back to the same detections (what the annotator's
+    Targets page writes). One kind per file, as the reader wants: all pixels
+    (``image,x,y,label[,time]``) or all boxes (``image,xmin,ymin,xmax,ymax,label[,time]``);
+    a ``time`` column only when some detection has a time. No detections: the header alone."""
+    kinds = {d.box is not None for d in dets}
+    if len(kinds) > 1:
+        raise GtkitError("a detections CSV holds either pixels or boxes, not both")
+    is_box = kinds == {True}
+    has_time = any(d.time is not None for d in dets)
+    buf = io.StringIO()
+    for line in comment.splitlines():
+        buf.write(f"# {line}\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["image", *(("xmin", "ymin", "xmax", "ymax") if is_box else ("x", "y")), "label",
+                *(["time"] if has_time else [])])
+    for d in dets:
+        xy = d.box if is_box else (d.u, d.v)
+        w.writerow([d.image, *(f"{float(v):.3f}" for v in xy), d.label or "target",
+                    *([] if not has_time else ["" if d.time is None else f"{d.time:.3f}"])])
+    return buf.getvalue()
+
+
+def write_csv(path: str | Path, dets: list[Detection], comment: str = "") -> Path:
+    """Write ``dets`` atomically as a detections CSV (:func:`detections_csv`)."""
+    return write_text(path, detections_csv(dets, comment))
