@@ -1,4 +1,5 @@
-"""The annotator's main window: the tie-point workspace and the alignment review as two tabs,
+"""The annotator's main window: the tie-point workspace, the alignment review and the target
+clicks (for ``gtkit track``) as three tabs,
 the shortcuts for every frequent action, and the session file that makes reopening resume."""
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from .ranking import OverlapRanker
 from .review_page import ReviewPage
 from .session import load_session, save_session
 from .store import TiePointStore
+from .target_page import TargetPage
 from .tiepoint_page import TiePointPage
 
 log = logging.getLogger(__name__)
@@ -35,7 +37,9 @@ SHORTCUTS = [  # (menu, label, keys, method)
     ("Review", "Reject image", "X", "verdict_reject"), ("Review", "Needs work", "W", "verdict_needs"),
     ("Review", "Next image", "K", "next_image"), ("Review", "Previous image", "J", "prev_image"),
     ("View", "Tie points tab", "Ctrl+1", "tab_tiepoints"), ("View", "Review tab", "Ctrl+2", "tab_review"),
+    ("View", "Targets tab", "Ctrl+3", "tab_targets"),
 ]
+TABS = ("tiepoints", "review", "targets")
 
 
 class MainWindow(QMainWindow):
@@ -56,13 +60,16 @@ class MainWindow(QMainWindow):
                                     cache_file=P.stage("annotate") / "prior_ground_points.json")
         self.tiepoints = TiePointPage(P, self.store, self.cache, self.ranker, self.undo_stack)
         self.review = ReviewPage(self.project, pose_file)
+        self.target_undo = QUndoStack(self)  # the Targets page's own undo history
+        self.targets = TargetPage(self.project, self.cache, self.target_undo)
         self.tabs = QTabWidget()
         self.tabs.addTab(self.tiepoints, "Tie points")
         self.tabs.addTab(self.review, "Alignment review")
+        self.tabs.addTab(self.targets, "Targets")
         self.setCentralWidget(self.tabs)
         self.setWindowTitle(f"gtkit annotate: {self.project.name} ({P.root})")
         self.resize(1500, 900)
-        for page in (self.tiepoints, self.review):
+        for page in (self.tiepoints, self.review, self.targets):
             page.status.connect(lambda m: self.statusBar().showMessage(m, 8000))
             page.session_changed.connect(self.schedule_session_save)
         self.tabs.currentChanged.connect(self._tab_changed)
@@ -77,8 +84,9 @@ class MainWindow(QMainWindow):
             tp = {"query": query}
         self.tiepoints.restore(tp)
         self.review.restore(self.session.get("review", {}))
-        if self.session.get("tab") == "review":
-            self.tabs.setCurrentIndex(1)
+        self.targets.restore(self.session.get("targets", {}))
+        if self.session.get("tab") in TABS[1:]:
+            self.tabs.setCurrentIndex(TABS.index(self.session["tab"]))
         self._restoring = False
         self.statusBar().showMessage(f"{len(self.store)} tie points in {P.tiepoints.name}; every edit is saved at once")
 
@@ -104,25 +112,44 @@ class MainWindow(QMainWindow):
     def _on_tp(self):
         return self.tabs.currentIndex() == 0
 
+    def _on_targets(self):
+        return self.tabs.currentIndex() == 2
+
+    def _views(self):
+        if self._on_tp():
+            return (self.tiepoints.qview, self.tiepoints.rview)
+        return (self.targets.view,) if self._on_targets() else (self.review.view,)
+
     def undo_(self):
-        self.undo_stack.undo()
+        (self.target_undo if self._on_targets() else self.undo_stack).undo()
 
     def redo_(self):
-        self.undo_stack.redo()
+        (self.target_undo if self._on_targets() else self.undo_stack).redo()
 
     def delete_(self):
         if self._on_tp():
             self.tiepoints.delete_active()
+        elif self._on_targets():
+            self.targets.delete_active()
 
     def deselect_(self):
+        if self._on_targets():
+            self.targets.deselect()
+            return
         self.tiepoints.active = None
         self.tiepoints.refresh()
 
     def next_query(self):
-        self.tiepoints.step_query(1)
+        if self._on_targets():
+            self.targets.step(1)
+        else:
+            self.tiepoints.step_query(1)
 
     def prev_query(self):
-        self.tiepoints.step_query(-1)
+        if self._on_targets():
+            self.targets.step(-1)
+        else:
+            self.tiepoints.step_query(-1)
 
     def next_ref(self):
         self.tiepoints.step_reference(1)
@@ -131,21 +158,20 @@ class MainWindow(QMainWindow):
         self.tiepoints.step_reference(-1)
 
     def fit(self):
-        views = (self.tiepoints.qview, self.tiepoints.rview) if self._on_tp() else (self.review.view,)
-        for v in views:
+        for v in self._views():
             v.fit()
 
     def toggle_loupe(self):
-        for v in (self.tiepoints.qview, self.tiepoints.rview):
+        for v in (self.tiepoints.qview, self.tiepoints.rview, self.targets.view):
             v.loupe_enabled = not v.loupe_enabled
             v.loupe.hide()
 
     def zoom_in(self):
-        for v in ((self.tiepoints.qview, self.tiepoints.rview) if self._on_tp() else (self.review.view,)):
+        for v in self._views():
             v.zoom_by(1.25)
 
     def zoom_out(self):
-        for v in ((self.tiepoints.qview, self.tiepoints.rview) if self._on_tp() else (self.review.view,)):
+        for v in self._views():
             v.zoom_by(0.8)
 
     def suggest_(self):
@@ -173,15 +199,15 @@ class MainWindow(QMainWindow):
         self.review.set_mode("checker")
 
     def verdict_accept(self):
-        if not self._on_tp():
+        if self.tabs.currentIndex() == 1:
             self.review.set_verdict("accept")
 
     def verdict_reject(self):
-        if not self._on_tp():
+        if self.tabs.currentIndex() == 1:
             self.review.set_verdict("reject")
 
     def verdict_needs(self):
-        if not self._on_tp():
+        if self.tabs.currentIndex() == 1:
             self.review.set_verdict("needs-work")
 
     def next_image(self):
@@ -196,15 +222,21 @@ class MainWindow(QMainWindow):
     def tab_review(self):
         self.tabs.setCurrentIndex(1)
 
+    def tab_targets(self):
+        self.tabs.setCurrentIndex(2)
+
     def _tab_changed(self, i):
         if i == 1 and self.review.image is None:
             self.review.open_image(getattr(self.review, "_restore_image", None))
+        if i == 2:
+            self.targets.ensure_shown()
         self.schedule_session_save()
 
     # --- session -------------------------------------------------------------------------------
     def session_state(self) -> dict:
-        return {"format": "gtkit-annotate-session", "tab": "review" if self.tabs.currentIndex() == 1 else "tiepoints",
-                "tiepoints": self.tiepoints.session_state(), "review": self.review.session_state()}
+        return {"format": "gtkit-annotate-session", "tab": TABS[self.tabs.currentIndex()],
+                "tiepoints": self.tiepoints.session_state(), "review": self.review.session_state(),
+                "targets": self.targets.session_state()}
 
     def schedule_session_save(self):
         if not self._restoring and not self._save_timer.isActive():
