@@ -121,10 +121,16 @@ class MainWindow(QMainWindow):
         return (self.targets.view,) if self._on_targets() else (self.review.view,)
 
     def undo_(self):
-        (self.target_undo if self._on_targets() else self.undo_stack).undo()
+        if self._on_targets():
+            self.targets.undo_()
+        else:
+            self.undo_stack.undo()
 
     def redo_(self):
-        (self.target_undo if self._on_targets() else self.undo_stack).redo()
+        if self._on_targets():
+            self.targets.redo_()
+        else:
+            self.undo_stack.redo()
 
     def delete_(self):
         if self._on_tp():

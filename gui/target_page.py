@@ -26,7 +26,7 @@ from gtkit.errors import GtkitError
 from gtkit.track.calibrate import query_photos
 
 from .image_view import ImageView, Marker
-from .target_store import Target, TargetStore, box_target, match_result, tracked_results
+from .target_store import PLURAL, Target, TargetStore, box_target, match_result, tracked_results
 from .target_undo import AddTarget, ChangeTarget, DeleteTarget
 
 log = logging.getLogger(__name__)
@@ -258,10 +258,18 @@ class TargetPage(QWidget):
         lab = " ".join(self.label_box.currentText().split())
         return lab or "target"
 
-    def _refuse(self, t: Target) -> bool:
+    def _refuse(self, t: Target | None = None) -> bool:
+        """Whether an edit must not happen (said in the status bar): the file could not be read,
+        another program changed it since, or ``t`` is of the other kind than the file's."""
         if self.store is None:
             self.status.emit(f"{self.error} -- not editing it (fix or move the file, then reopen)")
             return True
+        if self.store.changed_on_disk():
+            self.status.emit(f"{self.store.path}: changed on disk since the annotator read it -- not overwriting "
+                             "it; reopen the annotator to load it")
+            return True
+        if t is None:
+            return False
         try:
             self.store.check_kind(t)
         except GtkitError as e:
@@ -296,6 +304,9 @@ class TargetPage(QWidget):
         t = self.store.get(tid) if self.store else None
         if t is None or (dx == 0 and dy == 0):
             return
+        if self._refuse():
+            self.refresh()   # the marker goes back where the file has it
+            return
         self.undo.push(ChangeTarget(self.store, t, t.moved(dx, dy), "move"))
         self.active = tid
         self.refresh()
@@ -311,17 +322,25 @@ class TargetPage(QWidget):
         lab = self.current_label()
         if self.label_box.findText(lab) < 0:
             self.label_box.addItem(lab)
-        if t is None or t.label == lab:
+        if t is None or t.label == lab or self._refuse():
             return
         self.undo.push(ChangeTarget(self.store, t, replace(t, label=lab), "relabel"))
         self.refresh()
 
     def delete_active(self):
-        if self.store is None or self.active is None or self.store.get(self.active) is None:
+        if self.store is None or self.active is None or self.store.get(self.active) is None or self._refuse():
             return
         self.undo.push(DeleteTarget(self.store, self.active))
         self.active = None
         self.refresh()
+
+    def undo_(self):
+        if not self._refuse():
+            self.undo.undo()
+
+    def redo_(self):
+        if not self._refuse():
+            self.undo.redo()
 
     def select(self, tid: str | None):
         self.active = tid
@@ -389,7 +408,7 @@ class TargetPage(QWidget):
             return
         n = len(self.store)
         kind = self.store.kind()
-        self.file_label.setText(f"{n} target{'s' if n != 1 else ''}{f' ({kind}s)' if kind else ''} in "
+        self.file_label.setText(f"{n} target{'s' if n != 1 else ''}{f' ({PLURAL[kind]})' if kind else ''} in "
                                 f"{self.paths.detections} -- saved at every edit; `gtkit track` reads it")
 
     # --- session ---------------------------------------------------------------------------

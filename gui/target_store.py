@@ -27,6 +27,7 @@ from gtkit.track.targets import Detection, read_csv, resolve_images, write_csv
 
 COMMENT = ("gtkit annotate: target clicks (x,y = foot point) or boxes in zoom photos, pixels in the COLMAP "
            "convention (the photo spans [0,W]x[0,H]); read by `gtkit track`")
+PLURAL = {"pixel": "pixels", "box": "boxes"}
 
 
 @dataclass
@@ -66,6 +67,7 @@ class TargetStore:
             raise GtkitError("not a file (the Targets page writes detections here)", self.path)
         self.on_saved = on_saved
         self.n_writes = 0
+        self._stamp = self._disk_stamp()
 
     # --- queries -------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -90,6 +92,18 @@ class TargetStore:
         """'pixel' or 'box' when the file holds targets (the only kind it can take), else None."""
         return self.targets[0].kind if self.targets else None
 
+    def _disk_stamp(self):
+        try:
+            st = self.path.stat()
+            return st.st_mtime_ns, st.st_size, st.st_ino
+        except OSError:
+            return None
+
+    def changed_on_disk(self) -> bool:
+        """True when another program wrote the file since this store read or wrote it (an edit
+        would overwrite that work: the page refuses edits until the annotator is reopened)."""
+        return self._disk_stamp() != self._stamp
+
     def new_id(self) -> str:
         self._n += 1
         return f"t{self._n}"
@@ -98,6 +112,7 @@ class TargetStore:
     def save(self) -> None:
         dets = [Detection(t.image, t.x, t.y, t.label, t.time, t.box) for t in self.targets]
         write_csv(self.path, dets, COMMENT)  # atomic: temp file, fsync, rename
+        self._stamp = self._disk_stamp()
         self.n_writes += 1
         if self.on_saved:
             self.on_saved(self)
@@ -105,8 +120,8 @@ class TargetStore:
     def check_kind(self, t: Target) -> None:
         k = self.kind()
         if k is not None and k != t.kind:
-            raise GtkitError(f"holds {k}s; the tracker reads one kind per file, so a {t.kind} cannot be added "
-                             f"(delete the {k}s first, or use another file)", self.path)
+            raise GtkitError(f"holds {PLURAL[k]}; the tracker reads one kind per file, so a {t.kind} cannot be "
+                             f"added (delete the {PLURAL[k]} first, or use another file)", self.path)
 
     def insert(self, t: Target, index: int | None = None) -> None:
         if self.get(t.id) is not None:

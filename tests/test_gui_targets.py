@@ -236,3 +236,20 @@ def test_gui_clicks_at_true_target_pixels_track_to_centimetres(qtbot, site):
     page.refresh()
     texts = [page.table.topLevelItem(i).text(4) for i in range(page.table.topLevelItemCount())]
     assert texts and all(t.count(",") == 2 and "m" in t for t in texts), texts
+
+
+def test_a_file_changed_by_another_program_is_not_overwritten(qtbot, site):
+    w, page = _window(qtbot, site)
+    page.open_image(IMG)
+    page.view.center_on(160.0, 120.0, zoom=2.0)
+    _click(qtbot, page.view, 100.0, 100.0)
+    other = "image,x,y,label\nqueries/seq1/0002_Z.jpg,10.000,20.000,car\n"   # e.g. a detector run meanwhile
+    (site / "detections.csv").write_text(other)
+    msgs = []
+    page.status.connect(msgs.append)
+    _click(qtbot, page.view, 150.0, 100.0)
+    w.undo_()
+    page.select(page.store.targets[0].id)
+    page.delete_active()
+    assert (site / "detections.csv").read_text() == other
+    assert msgs and all("changed on disk" in m and "detections.csv" in m for m in msgs)
