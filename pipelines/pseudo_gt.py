@@ -17,7 +17,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 
+from gtkit.errors import GtkitError
 from gtkit.project import Project
 
 from ._timing import timed
@@ -60,4 +62,9 @@ if __name__ == "__main__":
     s = blocks.SfmSettings()
     if a.gps_inlier_m:
         s.georegister.gps_inlier_m = a.gps_inlier_m
-    print(json.dumps(main(a.project, s, rep=report.ReportSettings(a.point_cloud), force=a.force), indent=2, default=str))
+    try:
+        print(json.dumps(main(a.project, s, rep=report.ReportSettings(a.point_cloud), force=a.force), indent=2,
+                         default=str))
+    except GtkitError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)

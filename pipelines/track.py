@@ -13,7 +13,9 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 
+from gtkit.errors import GtkitError
 from gtkit.export import dsm as dsm_stage
 from gtkit.project import Project
 from gtkit.track import calibrate
@@ -42,4 +44,8 @@ if __name__ == "__main__":
     ap.add_argument("--poses", default="")
     ap.add_argument("--detections", default="")
     a = ap.parse_args()
-    print(json.dumps(main(a.project, a.poses, a.detections), indent=2, default=str))
+    try:
+        print(json.dumps(main(a.project, a.poses, a.detections), indent=2, default=str))
+    except GtkitError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
