@@ -11,6 +11,13 @@ that rule made precise). The winner is refined on its inliers (:func:`poselib.re
 Cauchy loss), inliers re-counted, refined again, and the refined pose's gravity is checked too.
 A failure is a failure: ``pose`` is None and ``reason`` says why.
 
+Covariance: the refined pose carries the 6x6 first-order covariance of (rotation vector,
+translation) in :class:`gtkit.pose.Pose`'s convention, ``sigma^2 (J^T J)^-1`` over the inliers, with
+``sigma`` the inliers' robust (MAD) reprojection spread per coordinate, multiplied by
+``covariance_inflation``: neighbouring matches share the rendered model's errors, so they are not
+independent, and the plain formula is over-confident (the factor is measured against truth on the
+sample site; see the settings).
+
 The 2D points must be pixels of an undistorted pinhole camera (distortion already removed).
 """
 from __future__ import annotations
@@ -37,6 +44,12 @@ class PnPSettings:
     confidence: float = 0.9999
     refine: bool = True
     seed: int = 0
+    # Multiplies the first-order covariance (a variance factor). Measured on the small sample site
+    # (28 localized queries vs true poses, seed 0): with factor 1 the squared Mahalanobis norm of the
+    # 6-dof error had a median of 24.5 (a chi-square with 6 dof: 5.35) and that of the camera
+    # centre 6.4 (3 dof: 2.37): over-confident by 4.6x and 2.7x in variance; 4 sits between, so the
+    # tracker's propagated target sigmas mean roughly what they say (checked on medium: issue 8 note).
+    covariance_inflation: float = 4.0
 
 
 @dataclass
@@ -69,6 +82,38 @@ def _errors(R, t, X, uv, K) -> np.ndarray:
         v = K[1, 1] * pc[:, 1] / z + K[1, 2]
         e = np.hypot(u - uv[:, 0], v - uv[:, 1])
     return np.where(z > 0, e, np.inf)
+
+
+def pose_covariance(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray, K: np.ndarray,
+                    inflation: float = 1.0) -> np.ndarray | None:
+    """6x6 covariance of (rotation vector, translation) of the world-to-camera pose (R, t), for
+    the left perturbation ``R' = exp(dr) R, t' = t + dt``, from pixels ``uv`` of world points
+    ``X`` (inliers) through the pinhole ``K``. None when the points do not constrain the pose."""
+    pc = X @ R.T + t
+    z = pc[:, 2]
+    if len(X) < 4 or np.any(z <= 0):
+        return None
+    fx, fy = K[0, 0], K[1, 1]
+    du = np.stack([fx / z, np.zeros_like(z), -fx * pc[:, 0] / z ** 2], axis=1)   # d u / d pc
+    dv = np.stack([np.zeros_like(z), fy / z, -fy * pc[:, 1] / z ** 2], axis=1)   # d v / d pc
+    # d pc / d dr = -[pc - t]_x (the rotated point), d pc / d dt = I
+    y = pc - t
+
+    def skew_rows(d):  # d^T (-[y]_x) = (y x d)^T ... per point
+        return np.cross(y, d)
+
+    J = np.concatenate([np.concatenate([skew_rows(du), du], axis=1),
+                        np.concatenate([skew_rows(dv), dv], axis=1)], axis=0)
+    r = np.concatenate([fx * pc[:, 0] / z + K[0, 2] - uv[:, 0], fy * pc[:, 1] / z + K[1, 2] - uv[:, 1]])
+    sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
+    sigma = max(float(sigma), 0.1)  # never claim better than 0.1 px
+    try:
+        cov = np.linalg.inv(J.T @ J) * sigma ** 2 * inflation
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov)):
+        return None
+    return 0.5 * (cov + cov.T)
 
 
 def gravity_pnp_ransac(uv: np.ndarray, X: np.ndarray, camera: Camera, gravity_prior: np.ndarray | None,
@@ -143,7 +188,8 @@ def gravity_pnp_ransac(uv: np.ndarray, X: np.ndarray, camera: Camera, gravity_pr
                       f"(> {s.gravity_deg:g})")
         return res
     try:
-        res.pose = Pose(R, t)
+        cov = pose_covariance(R, t, X[inl], uv[inl], K, s.covariance_inflation)
+        res.pose = Pose(R, t, covariance=cov)
     except Exception as e:  # noqa: BLE001 - a degenerate refinement is a failure, not a crash
         res.reason = f"invalid refined pose ({e})"
     return res
