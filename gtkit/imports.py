@@ -55,7 +55,7 @@ def _project(p) -> Project:
 
 def detect_model_kind(source: Path) -> str:
     from .io.odm_model import find_odm_model
-    from .io.pointcloud import POINT_SUFFIXES, ply_has_faces
+    from .io.pointcloud import POINT_SUFFIXES, is_point_cloud
 
     source = Path(source)
     if not source.exists():
@@ -67,7 +67,7 @@ def detect_model_kind(source: Path) -> str:
     if source.is_dir():
         raise GtkitError("folder is neither a tiled model (metadata.xml) nor an OpenDroneMap project", source)
     s = source.suffix.lower()
-    if s in (".las", ".laz") or (s == ".ply" and not ply_has_faces(source)):
+    if is_point_cloud(source):
         return "points"
     if s in POINT_SUFFIXES or s in (".obj", ".glb", ".gltf", ".off", ".stl"):
         return "mesh"

@@ -22,24 +22,11 @@ def truth_errors(estimated: dict[str, Pose], truth_poses: Path, names: list[str]
 
 
 def read_point_cloud(path: Path, frame: GeoFrame, crs: str | None = None) -> np.ndarray:
-    """A LAS/LAZ cloud in the project's local frame; ``crs`` defaults to the file's own CRS, else
-    the project's."""
-    import laspy
+    """A LAS/LAZ/PLY cloud in the project's local frame; ``crs`` defaults to the file's own CRS,
+    else the project's (:func:`gtkit.io.pointcloud.read_point_cloud`)."""
+    from ..io.pointcloud import read_point_cloud as read
 
-    path = Path(path)
-    if not path.is_file():
-        raise GtkitError("point cloud not found", path)
-    las = laspy.read(path)
-    xyz = np.c_[np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)]
-    if crs is None:
-        try:
-            c = las.header.parse_crs()
-            crs = c.to_string() if c is not None else None
-        except Exception:  # noqa: BLE001 - LAS files often carry no readable CRS
-            crs = None
-    if crs is None:
-        return frame.crs_to_local(xyz)
-    return frame.from_crs(crs, xyz)
+    return read(path, frame, crs, default_crs=frame.crs_spec).xyz
 
 
 def cloud_offsets(points: np.ndarray, cloud: np.ndarray, k: int = 8, iterations: int = 15) -> dict:

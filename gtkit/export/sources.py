@@ -16,7 +16,8 @@ from ..errors import GtkitError
 from ..geo import GeoFrame, crs_name, parse_crs
 from ..io.mesh import MESH_SUFFIXES, load_model, read_offset_sidecar, sidecar_path
 from ..project import Paths, file_fingerprint
-from .surface import POINT_SUFFIXES, MeshSurface, PointSurface, TiledSurface, read_point_cloud
+from ..io.pointcloud import POINT_SUFFIXES, is_point_cloud, read_points
+from .surface import MeshSurface, PointSurface, TiledSurface
 
 REFERENCE_MODEL = "reference.obj"
 
@@ -44,17 +45,6 @@ def reference_model(paths: Paths) -> Path:
     if not found:
         raise GtkitError(f"no reference model (expected {REFERENCE_MODEL} or one mesh file); give --input", paths.model)
     raise GtkitError(f"several meshes ({', '.join(f.name for f in found)}); give --input", paths.model)
-
-
-def is_point_cloud(path: Path) -> bool:
-    s = path.suffix.lower()
-    if s in (".las", ".laz"):
-        return True
-    if s == ".ply":  # a PLY may be a mesh or points: look for faces in the header
-        with open(path, "rb") as f:
-            head = f.read(4096).split(b"end_header")[0].decode("latin-1")
-        return not any(line.startswith("element face") and line.split()[-1] != "0" for line in head.splitlines())
-    return False
 
 
 def input_fingerprint_paths(path: Path) -> list[Path]:
@@ -85,7 +75,7 @@ def load_surface(path: str | Path, frame: GeoFrame | None = None, crs: str | Non
     if suffix not in POINT_SUFFIXES and suffix not in MESH_SUFFIXES:
         raise GtkitError(f"not a mesh or point cloud (expected {', '.join(MESH_SUFFIXES + POINT_SUFFIXES)})", path)
     if is_point_cloud(path):
-        cloud = read_point_cloud(path, offset=offset)
+        cloud = read_points(path, offset=offset)
         file_crs = cloud.crs
         if file_crs is not None and crs is not None and not parse_crs(crs, path).equals(parse_crs(file_crs, path)):
             raise GtkitError(f"file states CRS {file_crs} but --crs {crs} was given", path)

@@ -14,19 +14,13 @@ Everything here is in the world frame (CRS minus the project origin).
 """
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import GtkitError
 from ..io.mesh import Mesh
 from .grid import Grid
-
-log = logging.getLogger(__name__)
-
-POINT_SUFFIXES = (".las", ".laz", ".ply")
 
 
 @dataclass
@@ -219,72 +213,3 @@ def fill_small_holes(height: np.ndarray, rgb: np.ndarray | None, passes: int,
     return h, (None if c is None else np.clip(np.rint(c), 0, 255).astype(np.uint8))
 
 
-# --- reading point clouds ---------------------------------------------------------------
-
-
-@dataclass
-class PointCloud:
-    xyz: np.ndarray            # (N, 3) float64 CRS coordinates
-    rgb: np.ndarray | None     # (N, 3) uint8
-    crs: str | None            # as stated by the file (LAS GeoKeys/WKT or sidecar), None if unstated
-
-
-def read_point_cloud(path: str | Path, offset=None) -> PointCloud:
-    """A LAS/LAZ (laspy) or PLY point cloud in CRS coordinates.
-
-    LAS/LAZ carry their CRS in the header; a PLY takes CRS and offset from the
-    ``<file>.offset.json`` sidecar (see :mod:`gtkit.io.mesh`) or from ``offset``."""
-    from ..geo import crs_name
-    from ..io.mesh import read_offset_sidecar
-
-    path = Path(path)
-    if not path.is_file():
-        raise GtkitError("point cloud not found", path)
-    suffix = path.suffix.lower()
-    if suffix in (".las", ".laz"):
-        import laspy
-
-        try:
-            las = laspy.read(str(path))
-        except Exception as e:  # noqa: BLE001 - laspy raises many types; all mean "unreadable"
-            raise GtkitError(f"not a readable LAS/LAZ file ({type(e).__name__}: {str(e)[:120]})", path) from None
-        xyz = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1).astype(np.float64)
-        rgb = None
-        if {"red", "green", "blue"} <= set(las.point_format.dimension_names):
-            c = np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)], axis=1)
-            rgb = (c >> 8 if c.max() > 255 else c).astype(np.uint8)
-        try:
-            crs = las.header.parse_crs()
-        except Exception:  # noqa: BLE001 - malformed GeoKeys: treat as "no CRS stated"
-            log.warning("%s: could not parse the CRS in the LAS header", path)
-            crs = None
-        cloud = PointCloud(xyz, rgb, crs_name(crs) if crs is not None else None)
-        if offset is not None:
-            cloud.xyz = cloud.xyz + np.asarray(offset, float)
-    elif suffix == ".ply":
-        import trimesh
-
-        try:
-            pc = trimesh.load(str(path), process=False)
-        except Exception as e:  # noqa: BLE001
-            raise GtkitError(f"not a readable PLY ({type(e).__name__}: {str(e)[:120]})", path) from None
-        xyz = np.asarray(pc.vertices, dtype=np.float64)
-        rgb = None
-        cols = getattr(pc, "colors", None)
-        if cols is None and hasattr(pc, "visual"):
-            cols = getattr(pc.visual, "vertex_colors", None)
-        if cols is not None and len(cols) == len(xyz):
-            rgb = np.asarray(cols)[:, :3].astype(np.uint8)
-        side = read_offset_sidecar(path)
-        crs = None
-        if side is not None:
-            crs, off = side
-            xyz = xyz + off
-        elif offset is not None:
-            xyz = xyz + np.asarray(offset, float)
-        cloud = PointCloud(xyz, rgb, crs)
-    else:
-        raise GtkitError(f"not a point cloud (expected one of {', '.join(POINT_SUFFIXES)})", path)
-    if len(cloud.xyz) == 0:
-        raise GtkitError("point cloud holds no points", path)
-    return cloud

@@ -23,9 +23,9 @@ POINT_SUFFIXES = (".las", ".laz", ".ply")
 
 @dataclass
 class PointCloud:
-    xyz: np.ndarray                 # (N, 3) float64, world frame
+    xyz: np.ndarray                 # (N, 3) float64: world frame (read_point_cloud) or CRS coordinates (read_points)
     rgb: np.ndarray | None = None   # (N, 3) uint8
-    crs: str | None = None          # the CRS the file was in
+    crs: str | None = None          # the CRS the file was in (None: it states none)
 
     def bounds(self) -> np.ndarray:
         return np.stack([self.xyz.min(0), self.xyz.max(0)])
@@ -79,8 +79,17 @@ def _read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     return xyz, rgb
 
 
-def read_point_cloud(path: str | Path, frame, crs: str | None = None, offset=None) -> PointCloud:
-    """LAS/LAZ/PLY points in the world frame of ``frame`` (a :class:`gtkit.geo.GeoFrame`)."""
+def is_point_cloud(path: str | Path) -> bool:
+    """LAS/LAZ, or a PLY without faces (a PLY may hold a mesh or points)."""
+    path = Path(path)
+    s = path.suffix.lower()
+    return s in (".las", ".laz") or (s == ".ply" and not ply_has_faces(path))
+
+
+def read_points(path: str | Path, offset=None) -> PointCloud:
+    """LAS/LAZ/PLY points in the coordinates of the CRS the file states (``crs``, None when it
+    states none): file coordinates plus the offset of the ``<file>.offset.json`` sidecar (which may
+    also state the CRS), else plus ``offset``."""
     path = Path(path)
     if not path.is_file():
         raise GtkitError("point cloud not found", path)
@@ -95,21 +104,31 @@ def read_point_cloud(path: str | Path, frame, crs: str | None = None, offset=Non
     if not len(xyz):
         raise GtkitError("point cloud holds no points", path)
     side = read_offset_sidecar(path)
-    off = np.zeros(3)
     if side is not None:
         file_crs = file_crs or side[0]
-        off = side[1]
+        xyz = xyz + side[1]
     elif offset is not None:
-        off = np.asarray(offset, np.float64)
+        xyz = xyz + np.asarray(offset, np.float64)
+    if not np.all(np.isfinite(xyz)):
+        raise GtkitError("point cloud has NaN or infinite coordinates", path)
+    return PointCloud(xyz, rgb, file_crs)
+
+
+def read_point_cloud(path: str | Path, frame, crs: str | None = None, offset=None,
+                     default_crs: str | None = None) -> PointCloud:
+    """LAS/LAZ/PLY points in the world frame of ``frame`` (a :class:`gtkit.geo.GeoFrame`).
+    The CRS is the file's; ``crs`` (the user's) must agree with it or stands in for it;
+    ``default_crs`` is used only when neither states one."""
+    path = Path(path)
+    raw = read_points(path, offset)
+    file_crs = raw.crs
     if file_crs is not None and crs is not None:
         from ..geo import parse_crs
 
         if not parse_crs(crs, path).equals(parse_crs(file_crs, path)):
             raise GtkitError(f"file states CRS {file_crs} but {crs} was given", path)
-    use = file_crs or crs
+    use = file_crs or crs or default_crs
     if use is None:
         raise GtkitError("point cloud has no georeference (no CRS in the header or a sidecar); give --crs", path)
-    if not np.all(np.isfinite(xyz)):
-        raise GtkitError("point cloud has NaN or infinite coordinates", path)
-    to_world = SrsToWorld(use, frame, off, source=path)
-    return PointCloud(to_world.points(xyz), rgb, use)
+    to_world = SrsToWorld(use, frame, np.zeros(3), source=path)
+    return PointCloud(to_world.points(raw.xyz), raw.rgb, use)
