@@ -85,7 +85,8 @@ class TargetView(ImageView):
     def mouseMoveEvent(self, e):
         if self._press is not None:
             if self._dragged(e.position()):
-                self._rubber.setRect(QRectF(self._press[1], self._clamped(self._photo_point(e.position()))).normalized())
+                end = self._clamped(self._photo_point(e.position()))
+                self._rubber.setRect(QRectF(self._press[1], end).normalized())
                 self._rubber.show()
             self._update_loupe(e.position().toPoint())
             return
@@ -163,6 +164,9 @@ class TargetPage(QWidget):
         self.table.setRootIsDecorated(False)
         for c, wdt in enumerate((70, 40, 60, 60)):
             self.table.setColumnWidth(c, wdt)
+        self.detail = QLabel()          # the selected target and its tracked position, in full
+        self.detail.setWordWrap(True)
+        self.detail.setTextInteractionFlags(Qt.TextInteractionFlag.TextSelectableByMouse)
         self.file_label = QLabel()
         self.file_label.setWordWrap(True)
         help_ = QLabel("click = foot point, drag = box; drag a marker to move; Delete, Ctrl+Z / Ctrl+Shift+Z; "
@@ -178,10 +182,12 @@ class TargetPage(QWidget):
         side.addWidget(help_)
         side.addWidget(QLabel("Targets in this photo"))
         side.addWidget(self.table, 2)
+        side.addWidget(self.detail)
         side.addWidget(self.file_label)
         left = QWidget()
         left.setLayout(side)
-        left.setMaximumWidth(420)
+        left.setMinimumWidth(380)
+        left.setMaximumWidth(440)
         right = QWidget()
         rl = QVBoxLayout(right)
         rl.setContentsMargins(0, 0, 0, 0)
@@ -372,6 +378,21 @@ class TargetPage(QWidget):
             s += f"; {float(r['sigma_h_m']):.2f} m"
         return s
 
+    @staticmethod
+    def detail_text(t: Target, r: dict | None, crs: str) -> str:
+        where = (f"box ({t.box[0]:.1f}, {t.box[1]:.1f})-({t.box[2]:.1f}, {t.box[3]:.1f}), centre "
+                 if t.box is not None else "foot point ")
+        s = f"<b>{t.label}</b>: {where}({t.x:.2f}, {t.y:.2f}) px<br>"
+        if r is None:
+            return s + "not tracked yet (run <tt>gtkit track</tt>)"
+        if r.get("status") != "ok":
+            return s + f"tracker: {r.get('status')}: {r.get('message', '')}"
+        s += (f"tracked: x {float(r['x']):.2f}, y {float(r['y']):.2f}, z {float(r['z']):.2f} m ({crs})<br>"
+              f"lon {r.get('lon')}, lat {r.get('lat')}")
+        if r.get("sigma_h_m"):
+            s += f"; sigma horizontal {float(r['sigma_h_m']):.2f} m, vertical {float(r.get('sigma_z_m') or 0):.2f} m"
+        return s
+
     def refresh(self):
         if self.image is None:
             return
@@ -385,6 +406,8 @@ class TargetPage(QWidget):
             self.view.remove_box(k)
         rows = self.results()
         self.table.clear()
+        self.detail.setText("")
+        crs = self.project.frame.crs_spec
         for t in targets:
             active = t.id == self.active
             self.view.set_marker(t.id, t.x, t.y, "active" if active else "normal", t.label,
@@ -398,6 +421,7 @@ class TargetPage(QWidget):
             self.table.addTopLevelItem(it)
             if active:
                 self.table.setCurrentItem(it)
+                self.detail.setText(self.detail_text(t, match_result(t, rows), crs))
         self._fill_photo_list()
         self._update_file_label()
 
