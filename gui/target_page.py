@@ -254,10 +254,13 @@ class TargetPage(QWidget):
             self.open_image(names[(i + d) % len(names)])
 
     def ensure_shown(self):
-        """Open the restored (or first) photo the first time the page is shown."""
+        """Open the restored (or first) photo the first time the page is shown; later, show
+        what changed meanwhile (e.g. ``gtkit track`` ran in a terminal)."""
         if self.image is None:
             st = self._restore_state
             self.open_image(st.get("image"), st.get("view"))
+        else:
+            self.refresh()
 
     # --- edits ---------------------------------------------------------------------------
     def current_label(self) -> str:
