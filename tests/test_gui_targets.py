@@ -253,3 +253,60 @@ def test_a_file_changed_by_another_program_is_not_overwritten(qtbot, site):
     page.delete_active()
     assert (site / "detections.csv").read_text() == other
     assert msgs and all("changed on disk" in m and "detections.csv" in m for m in msgs)
+
+
+_KILL_DRIVER = r'''
+import json, sys
+from PySide6.QtCore import Qt, QTimer
+from PySide6.QtTest import QTest
+from gui.app import make_app
+from gui.main_window import MainWindow
+app = make_app()
+w = MainWindow(sys.argv[1]); w.resize(1200, 800); w.show(); w.tabs.setCurrentIndex(2)
+page, k = w.targets, [0]
+page.open_image("queries/seq1/0001_Z.jpg")
+page.view.center_on(160.0, 120.0, zoom=3.0)
+def step():
+    x, y = 20.0 + (k[0] * 37) % 280, 20.0 + (k[0] * 23) % 200
+    QTest.mouseClick(page.view.viewport(), Qt.MouseButton.LeftButton, Qt.KeyboardModifier.NoModifier,
+                     page.view.scene_to_widget(x, y))
+    t = page.store.targets[-1]
+    print("DONE " + json.dumps([t.image, t.x, t.y]), flush=True)
+    k[0] += 1
+    QTimer.singleShot(5, step)
+QTimer.singleShot(100, step)
+app.exec()
+'''
+
+
+def test_kill_mid_edit_loses_no_committed_click(site):
+    """The annotator in a subprocess clicking as fast as it can, SIGKILLed after 25 clicks:
+    every click it reported is in the file, which the tracker's reader reads."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen", PYTHONPATH=str(root))
+    proc = subprocess.Popen([sys.executable, "-c", _KILL_DRIVER, str(site)], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, env=env, cwd=str(root), text=True)
+    watchdog = threading.Timer(120, proc.kill)
+    watchdog.start()
+    done = []
+    try:
+        for line in proc.stdout:
+            if line.startswith("DONE "):
+                done.append(json.loads(line[5:]))
+                if len(done) == 25:
+                    proc.send_signal(signal.SIGKILL)   # the next click is already on its way
+                    break
+    finally:
+        watchdog.cancel()
+        proc.kill()
+        proc.wait()
+    assert len(done) == 25
+    on_disk = [[d.image, d.u, d.v] for d in read_detections(site / "detections.csv")]
+    assert len(on_disk) >= 25 and on_disk[:25] == [[i, round(x, 3), round(y, 3)] for i, x, y in done]
