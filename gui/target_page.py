@@ -316,6 +316,11 @@ class TargetPage(QWidget):
         if self._refuse():
             self.refresh()   # the marker goes back where the file has it
             return
+        W, H = self.view.full_size
+        lo = (t.box[0], t.box[1]) if t.box else (t.x, t.y)   # keep the target inside the photo
+        hi = (t.box[2], t.box[3]) if t.box else (t.x, t.y)
+        if W and H:
+            dx, dy = min(max(dx, -lo[0]), W - hi[0]), min(max(dy, -lo[1]), H - hi[1])
         self.undo.push(ChangeTarget(self.store, t, t.moved(dx, dy), "move"))
         self.active = tid
         self.refresh()

@@ -310,3 +310,14 @@ def test_kill_mid_edit_loses_no_committed_click(site):
     assert len(done) == 25
     on_disk = [[d.image, d.u, d.v] for d in read_detections(site / "detections.csv")]
     assert len(on_disk) >= 25 and on_disk[:25] == [[i, round(x, 3), round(y, 3)] for i, x, y in done]
+
+
+def test_a_dragged_marker_stays_inside_the_photo(qtbot, site):
+    w, page = _window(qtbot, site)
+    page.open_image(IMG)
+    page.view.fit()
+    QApplication.processEvents()
+    _click(qtbot, page.view, 300.0, 200.0)
+    _drag(qtbot, page.view, (300.0, 200.0), (340.0, 230.0))    # the cursor leaves the photo
+    d = _file(site)
+    assert len(d) == 1 and abs(d[0].u - 320.0) < 1e-6 and 229.0 <= d[0].v <= 240.0
