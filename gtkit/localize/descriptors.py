@@ -1,6 +1,6 @@
 """Global image descriptors for retrieval, chosen by name.
 
-``vlad``: VLAD (Jegou et al. 2010) on RootSIFT with a k-means codebook trained on the database's
+``vlad``: VLAD (Jegou et al. 2010) on RootSIFT (or on unit learned descriptors, e.g. XFeat's) with a k-means codebook trained on the database's
 own descriptors (nothing downloaded): residuals summed per visual word, intra-normalised
 (Arandjelovic & Zisserman 2013), signed square root, L2. Similarity = dot product.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import GtkitError
-from .features import rootsift
+from .features import unit_descriptors
 
 
 class Vlad:
@@ -20,10 +20,10 @@ class Vlad:
 
     @classmethod
     def train(cls, descriptors: np.ndarray, k: int = 64, seed: int = 0, iterations: int = 20) -> "Vlad":
-        """k-means codebook on (uint8 SIFT) descriptors."""
+        """k-means codebook on (uint8 SIFT or float learned) descriptors."""
         import cv2
 
-        x = rootsift(descriptors)
+        x = unit_descriptors(descriptors)
         if len(x) < k:
             raise GtkitError(f"too few descriptors ({len(x)}) to train a {k}-word VLAD codebook")
         cv2.setRNGSeed(seed)
@@ -36,11 +36,11 @@ class Vlad:
         return self.centers.size
 
     def describe(self, descriptors: np.ndarray) -> np.ndarray:
-        """(uint8 SIFT) descriptors of one image -> unit VLAD vector (float32)."""
+        """Descriptors of one image (uint8 SIFT or float learned) -> unit VLAD vector (float32)."""
         k, d = self.centers.shape
         v = np.zeros((k, d), np.float32)
         if len(descriptors):
-            x = rootsift(descriptors)
+            x = unit_descriptors(descriptors)
             d2 = (x * x).sum(1)[:, None] - 2 * x @ self.centers.T + (self.centers ** 2).sum(1)[None]
             a = d2.argmin(1)
             np.add.at(v, a, x - self.centers[a])

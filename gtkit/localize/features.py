@@ -8,7 +8,10 @@ Interface
 ``sift``: OpenCV SIFT on a copy resized so its longer side is at most ``max_side`` (keypoints
 are scaled back; with COLMAP's pixel convention a resize by s maps u to u * s exactly),
 descriptors stored as uint8 like COLMAP, turned into RootSIFT for matching.
-``nn-ratio``: mutual nearest neighbours in RootSIFT space that also pass Lowe's ratio test.
+``nn-ratio``: mutual nearest neighbours that also pass Lowe's ratio test, in RootSIFT space for
+SIFT (uint8) descriptors and on the unit vectors of float (learned) ones (:func:`unit_descriptors`).
+``xfeat`` / ``lighterglue``: XFeat features and the LighterGlue matcher (:mod:`.learned`, optional
+extra ``gtkit[learned]``; torch is imported only when one is built).
 """
 from __future__ import annotations
 
@@ -23,7 +26,8 @@ from ..errors import GtkitError
 @dataclass
 class Features:
     kp: np.ndarray     # (N, 2) float64 pixels, gtkit convention
-    desc: np.ndarray   # (N, D) descriptors as stored (uint8 SIFT)
+    desc: np.ndarray   # (N, D) descriptors as stored (uint8 SIFT; float16 XFeat)
+    image_size: tuple[int, int] | None = None  # (width, height) of the image; learned matchers need it
 
     def __len__(self):
         return len(self.kp)
@@ -34,6 +38,15 @@ def rootsift(desc: np.ndarray) -> np.ndarray:
     d = np.asarray(desc, dtype=np.float32)
     d /= np.maximum(d.sum(axis=1, keepdims=True), 1e-9)
     return np.sqrt(d)
+
+
+def unit_descriptors(desc: np.ndarray) -> np.ndarray:
+    """Descriptors as unit float32 vectors for matching and VLAD: RootSIFT for uint8 (SIFT)
+    descriptors, L2-normalised for float (learned, signed) ones."""
+    if np.asarray(desc).dtype == np.uint8:
+        return rootsift(desc)
+    d = np.asarray(desc, dtype=np.float32)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
 
 class SiftExtractor:
@@ -70,10 +83,10 @@ class MutualNNRatioMatcher:
 
     def match(self, a: Features, b: Features) -> np.ndarray:
         """One dense similarity matrix (BLAS) instead of a k-d tree or OpenCV's brute force:
-        RootSIFT vectors are unit length, so squared distance = 2 - 2 * similarity."""
+        the vectors are unit length, so squared distance = 2 - 2 * similarity."""
         if len(a) < 2 or len(b) < 2:
             return np.zeros((0, 2), int)
-        S = rootsift(a.desc) @ rootsift(b.desc).T
+        S = unit_descriptors(a.desc) @ unit_descriptors(b.desc).T
         back = S.argmax(axis=0)                  # best a for every b (mutual check)
         rows = np.arange(len(a))
         j1 = S.argmax(axis=1)
@@ -86,8 +99,20 @@ class MutualNNRatioMatcher:
         return np.stack([rows[keep], j1[keep]], axis=1).astype(int)
 
 
-EXTRACTORS = {"sift": SiftExtractor}
-MATCHERS = {"nn-ratio": MutualNNRatioMatcher}
+def _xfeat(**kw):
+    from .learned import XFeatExtractor
+
+    return XFeatExtractor(**kw)
+
+
+def _lighterglue(**kw):
+    from .learned import LighterGlueMatcher
+
+    return LighterGlueMatcher(**kw)
+
+
+EXTRACTORS = {"sift": SiftExtractor, "xfeat": _xfeat}
+MATCHERS = {"nn-ratio": MutualNNRatioMatcher, "lighterglue": _lighterglue}
 
 
 def make_extractor(name: str, **kw):
@@ -110,8 +135,12 @@ def write_features(h5, name: str, f: Features) -> None:
     g = h5.create_group(name)
     g.create_dataset("kp", data=f.kp.astype(np.float32))
     g.create_dataset("desc", data=f.desc)
+    if f.image_size is not None:
+        g.attrs["image_size"] = np.asarray(f.image_size, dtype=np.int64)
 
 
 def read_features(h5, name: str) -> Features:
     g = h5[name]
-    return Features(g["kp"][()].astype(np.float64), g["desc"][()])
+    size = g.attrs.get("image_size")
+    return Features(g["kp"][()].astype(np.float64), g["desc"][()],
+                    None if size is None else (int(size[0]), int(size[1])))
