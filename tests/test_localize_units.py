@@ -200,3 +200,23 @@ def test_pose_covariance_matches_the_scatter_of_noisy_solutions():
     assert 0.7 * chi2.median(6) < med < 1.4 * chi2.median(6), med
     assert 0.85 < np.mean(np.array(m2) < chi2.ppf(0.95, 6)) <= 1.0
     assert 0.0 < np.median(sig) < 0.1   # sub-0.1 deg from 1 px noise on ~260 points
+
+
+def test_sift_keypoints_are_unbiased_in_the_gtkit_pixel_convention():
+    """An image and its 180-degree rotation (no resampling): a point p maps to (W, H) - p, so
+    detections p + b and (W, H) - p + b reveal the bias b of the extractor."""
+    import cv2
+    from scipy.spatial import cKDTree
+
+    from gtkit.localize.features import SiftExtractor
+
+    rng = np.random.default_rng(0)
+    img = cv2.resize((rng.random((120, 160, 3)) * 255).astype(np.uint8), (640, 480), interpolation=cv2.INTER_CUBIC)
+    ex = SiftExtractor(max_keypoints=2000, max_side=1024)
+    a, b = ex.extract(img), ex.extract(img[::-1, ::-1].copy())
+    back = np.array([640.0, 480.0]) - b.kp
+    d, j = cKDTree(back).query(a.kp)
+    m = d < 0.8
+    assert m.sum() > 300
+    bias = np.median(a.kp[m] - back[j[m]], axis=0) / 2
+    assert np.all(np.abs(bias) < 0.02), bias

@@ -49,6 +49,18 @@ def unit_descriptors(desc: np.ndarray) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
 
+# Bumped whenever an extractor's output changes for the same settings: database feature caches
+# and finished localization runs are keyed on it, so they are recomputed, never mixed.
+CODE_VERSION = {"sift": 2, "xfeat": 1}
+
+# OpenCV's SIFT reports keypoints +0.25 px off in x and y (its first octave is the image doubled
+# by linear interpolation, whose sample grid is shifted by a quarter pixel). Measured exactly with
+# an image and its 180-degree rotated copy, which needs no resampling: detections p + b and
+# W - p + b give b = +0.250 / +0.249 px (tests/test_localize_units.py). Subtracted in the pixels
+# SIFT ran on, before scaling back.
+OPENCV_SIFT_OFFSET_PX = 0.25
+
+
 class SiftExtractor:
     name = "sift"
 
@@ -69,7 +81,7 @@ class SiftExtractor:
         kps, desc = self.sift.detectAndCompute(gray, None)
         if desc is None or not kps:
             return Features(np.zeros((0, 2)), np.zeros((0, 128), np.uint8))
-        pts = index_to_pixel(np.array([k.pt for k in kps], dtype=np.float64))
+        pts = index_to_pixel(np.array([k.pt for k in kps], dtype=np.float64)) - OPENCV_SIFT_OFFSET_PX
         sx, sy = w / gray.shape[1], h / gray.shape[0]
         pts *= (sx, sy)
         return Features(pts, np.clip(np.round(desc), 0, 255).astype(np.uint8))

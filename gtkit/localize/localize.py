@@ -160,7 +160,10 @@ def _db_cache(project: Project, s: LocalizeSettings) -> Path:
     database never meets features of its predecessor."""
     rec = project.paths.stage("render_db") / "settings.json"
     db_key = json.loads(rec.read_text()) if rec.is_file() else {}
-    key = settings_key({"features": settings_dict(s.features), "render_db": db_key})
+    from .features import CODE_VERSION
+
+    key = settings_key({"features": settings_dict(s.features), "render_db": db_key,
+                        "code": CODE_VERSION.get(s.features.extractor, 1)})
     return project.paths.stage("localize_db") / f"{s.features.extractor}-{key[:8]}"
 
 
@@ -511,8 +514,11 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
     names = query_names(project, settings)
     if not names:
         raise GtkitError(f"no query images match {settings.query_glob!r}", project.paths.images)
+    from .features import CODE_VERSION
+
     inputs = {"render_db": file_fingerprint(dbdir / "stage.json"), "queries": settings_key(names),
-              "cameras": file_fingerprint(project.paths.cameras)}
+              "cameras": file_fingerprint(project.paths.cameras),
+              "feature_code": CODE_VERSION.get(settings.features.extractor, 1)}
     if not force and stage_done(out, settings, inputs):
         log.info("localize: up to date (%s)", out)
         return out
