@@ -94,6 +94,17 @@ class Pose:
         """World points (N, 3) -> camera frame."""
         return np.asarray(points_world, dtype=np.float64) @ self.R.T + self.t
 
+    def center_covariance(self) -> np.ndarray | None:
+        """3x3 covariance of the camera centre C = -R^T t under the covariance's left perturbation
+        (``R' = exp(dr) R``, ``t' = t + dt``): C' = -R^T exp(-dr) (t + dt), so
+        dC = R^T (-[t]_x dr - dt). None without a covariance."""
+        if self.covariance is None:
+            return None
+        t = self.t
+        tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+        J = self.R.T @ np.concatenate([-tx, -np.eye(3)], axis=1)
+        return J @ self.covariance @ J.T
+
     def error_to(self, other: "Pose") -> tuple[float, float]:
         """(camera-centre distance in metres, rotation geodesic error in degrees)."""
         return float(np.linalg.norm(self.center - other.center)), rotation_angle_deg(self.R, other.R)

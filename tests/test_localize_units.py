@@ -220,3 +220,18 @@ def test_sift_keypoints_are_unbiased_in_the_gtkit_pixel_convention():
     assert m.sum() > 300
     bias = np.median(a.kp[m] - back[j[m]], axis=0) / 2
     assert np.all(np.abs(bias) < 0.02), bias
+
+
+def test_center_covariance_matches_sampled_centres():
+    """Pose.center_covariance (first order) against centres of poses drawn from the covariance."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T * 1e-6 + np.diag([1e-6] * 3 + [1e-2] * 3)
+    p = Pose(Pose.from_dji(40.0, -50.0, 1.0, [100.0, -200.0, 150.0]).R,
+             Pose.from_dji(40.0, -50.0, 1.0, [100.0, -200.0, 150.0]).t, covariance=cov)
+    d = rng.multivariate_normal(np.zeros(6), cov, 20000)
+    C = np.array([Pose(Rotation.from_rotvec(x[:3]).as_matrix() @ p.R, p.t + x[3:]).center for x in d])
+    emp = np.cov(C.T)
+    assert np.allclose(p.center_covariance(), emp, rtol=0.05, atol=0.02 * np.abs(emp).max())

@@ -34,7 +34,7 @@ import dataclasses
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -490,17 +490,8 @@ def _match_and_solve(W: dict, rec: dict, fq, cam: Camera, prior_R, order, sec: d
     rec["t"] = r.pose.t.tolist()
     if r.pose.covariance is not None:
         rec["covariance"] = r.pose.covariance.reshape(-1).tolist()
-        rec["sigma_pos_m"] = float(np.sqrt(np.trace(_centre_covariance(r.pose))))
+        rec["sigma_pos_m"] = float(np.sqrt(np.trace(r.pose.center_covariance())))
         rec["sigma_rot_deg"] = float(np.degrees(np.sqrt(np.trace(r.pose.covariance[:3, :3]))))
-
-
-def _centre_covariance(pose: Pose) -> np.ndarray:
-    """3x3 covariance of the camera centre C = -R^T t under the pose's left perturbation:
-    C' = -R^T exp(-dr) (t + dt), so dC = R^T (-[t]_x dr - dt)."""
-    R, t = pose.R, pose.t
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    J = R.T @ np.concatenate([-tx, -np.eye(3)], axis=1)
-    return J @ pose.covariance @ J.T
 
 
 # --- the stage ----------------------------------------------------------------------------------

@@ -96,14 +96,11 @@ def pose_covariance(R: np.ndarray, t: np.ndarray, X: np.ndarray, uv: np.ndarray,
     fx, fy = K[0, 0], K[1, 1]
     du = np.stack([fx / z, np.zeros_like(z), -fx * pc[:, 0] / z ** 2], axis=1)   # d u / d pc
     dv = np.stack([np.zeros_like(z), fy / z, -fy * pc[:, 1] / z ** 2], axis=1)   # d v / d pc
-    # d pc / d dr = -[pc - t]_x (the rotated point), d pc / d dt = I
+    # d pc / d dr = -[y]_x with y = R X (the rotated point), d pc / d dt = I; a row d of d u / d pc
+    # then gives d^T (-[y]_x) = (y x d)^T
     y = pc - t
-
-    def skew_rows(d):  # d^T (-[y]_x) = (y x d)^T ... per point
-        return np.cross(y, d)
-
-    J = np.concatenate([np.concatenate([skew_rows(du), du], axis=1),
-                        np.concatenate([skew_rows(dv), dv], axis=1)], axis=0)
+    J = np.concatenate([np.concatenate([np.cross(y, du), du], axis=1),
+                        np.concatenate([np.cross(y, dv), dv], axis=1)], axis=0)
     r = np.concatenate([fx * pc[:, 0] / z + K[0, 2] - uv[:, 0], fy * pc[:, 1] / z + K[1, 2] - uv[:, 1]])
     sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
     sigma = max(float(sigma), 0.1)  # never claim better than 0.1 px
