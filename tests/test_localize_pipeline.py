@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from gtkit.localize import database, localize
 from gtkit.localize.executors import ExecutorSettings, make_executor, run_map
 from test_localize_scene import build_site, default_queries
 
-DB_ARGS = ["--heights", "120", "--intervals", "100", "--yaw-step", "90", "--size", "480x360", "--hfov", "60"]
+DB_ARGS = ["--heights", "120", "--intervals", "100", "--pitches", "0,45", "--yaw-step", "90", "--size", "480x360", "--hfov", "60"]
 WATER = "queries/seq2/0001_W.jpg"
 OFF60 = "queries/seq2/0002_W.jpg"
 
@@ -28,8 +29,8 @@ def site(tmp_path_factory):
 
 
 def _db_settings():
-    return database.RenderDbSettings(heights=(120.0,), intervals=(100.0,), yaw_step=90.0, width=480, height=360,
-                                     hfov_deg=60.0)
+    return database.RenderDbSettings(heights=(120.0,), intervals=(100.0,), paper_pitches=(0.0, 45.0), yaw_step=90.0,
+                                     width=480, height=360, hfov_deg=60.0)
 
 
 def test_render_db_depth_is_metric_and_resume_is_per_view(site):
@@ -56,6 +57,31 @@ def test_render_db_depth_is_metric_and_resume_is_per_view(site):
     assert rec["summary"]["n_rendered"] == 3
     for n in lost:
         assert np.array_equal(np.load(out / "depth" / f"{n}.npz")["depth"], before[n], equal_nan=True)
+
+
+def test_changing_the_pitch_levels_keeps_the_views_and_features_on_disk(site, tmp_path):
+    """Pitch levels and the keep threshold choose which views exist; a view of a given name looks
+    the same whatever they are, so changing them renders nothing again and keeps the feature cache."""
+    from gtkit.project import Project, settings_dict
+
+    copy = tmp_path / "site"
+    shutil.copytree(site, copy, ignore=shutil.ignore_patterns("localize*", "reports"))
+    out = copy / "work" / "render_db"
+    s0 = _db_settings()
+    key0 = localize._db_cache(Project.load(copy), localize.LocalizeSettings())
+    nadir = replace(s0, paper_pitches=(0.0,), min_valid_fraction=0.6)
+    database.run(copy, nadir, ExecutorSettings("serial"))
+    rec = json.loads((out / "stage.json").read_text())["summary"]
+    assert rec["n_rendered"] == 0 and rec["n_views"] == 5 * 4 * 4
+    assert {v["paper_pitch"] for v in json.loads((out / "views.json").read_text())["views"]} == {0.0}
+    database.run(copy, s0, ExecutorSettings("serial"))            # back: the 45 deg views are still there
+    rec = json.loads((out / "stage.json").read_text())["summary"]
+    assert rec["n_rendered"] == 0 and rec["n_views"] == 5 * 4 * 8
+    assert localize._db_cache(Project.load(copy), localize.LocalizeSettings()) == key0
+    # what changes a view's pixels does start the database (and its features) again
+    record = json.loads((out / "settings.json").read_text())
+    assert database.view_record(settings_dict(replace(s0, hfov_deg=50.0)), record["inputs"]) != record
+    assert database.view_record(settings_dict(replace(s0, paper_pitches=(70.0,))), record["inputs"]) == record
 
 
 def test_localize_and_evaluate_against_truth(site):

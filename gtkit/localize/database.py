@@ -3,7 +3,8 @@ reference model (UAVD4L §3.1), fanned out over an executor, resumable view by v
 
 Layout under ``work/render_db/``::
 
-    settings.json            the settings the views on disk were made with (partial-run resume)
+    settings.json            what the views on disk depend on (:func:`view_record`): a re-run keeps
+                             every view whose name is still planned (resume, added pitch levels)
     images/<view>.jpg        RGB (JPEG, quality 95)
     depth/<view>.npz         'depth' float32 HxW metres along the optical axis, NaN = background;
                              'valid_fraction'; dropped views keep only 'valid_fraction'
@@ -34,7 +35,7 @@ from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json
 from ..io.poses import write_intrinsics, write_poses
 from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done
-from .executors import ExecutorSettings, make_executor, run_map
+from .executors import ExecutorSettings, iter_map, make_executor
 from .grid import View, ground_level, make_views
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,11 @@ STAGE = "render_db"
 class RenderDbSettings:
     heights: tuple[float, ...] = (100.0, 150.0)       # H above the model's ground level (m), paper
     intervals: tuple[float, ...] = (50.0, 75.0)       # grid interval alpha_t per height (m), paper
-    paper_pitches: tuple[float, ...] = (0.0, 45.0)    # from nadir: 0 = DJI -90, 45 = DJI -45, paper
+    # From nadir: 0 = DJI -90, 45 = DJI -45 (the paper's two), and 70 = DJI -20 (not in the paper):
+    # queries are flown with the gimbal 15-70 deg below the horizon (20-75 deg off nadir), so with the
+    # paper's levels a 20 deg photo is 25-30 deg from its nearest views (too far for SIFT) or outside
+    # gamma_o; with 70 every query is within 15 deg of a level. +50 % views; ablation 'render-paper'.
+    paper_pitches: tuple[float, ...] = (0.0, 45.0, 70.0)
     yaw_step: float = 45.0                            # alpha_theta (deg): 8 yaws, 16 views a position
     width: int = 640                                  # rendered view size (px)
     height: int = 480
@@ -56,6 +61,18 @@ class RenderDbSettings:
     model: str = "model/reference.obj"                # relative to the project; a folder (or its
                                                       # metadata.xml) = a tiled model, streamed per view
     tile_budget_mb: float = 512.0                     # GPU memory for resident tiles (tiled models)
+
+
+# Settings that only choose *which* views exist or are kept, never what a view of a given name looks
+# like: changing them keeps every view already on disk (adding a pitch level renders only the new
+# level, and the feature cache of the localize stage, keyed by the same record, stays valid).
+VIEW_SET_FIELDS = ("paper_pitches", "min_valid_fraction")
+
+
+def view_record(settings: dict, inputs: dict) -> dict:
+    """What a view of a given name depends on (written to ``settings.json``): the settings less
+    :data:`VIEW_SET_FIELDS`, and the model's fingerprint."""
+    return {"settings": {k: v for k, v in settings.items() if k not in VIEW_SET_FIELDS}, "inputs": inputs}
 
 
 def db_camera(s: RenderDbSettings) -> Camera:
@@ -192,10 +209,10 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
     if not force and stage_done(out, settings, inputs):
         log.info("render-db: up to date (%s)", out)
         return out
-    sd = {"settings": settings_dict(settings), "inputs": inputs}
+    sd = view_record(settings_dict(settings), inputs)
     sfile = out / "settings.json"
-    if sfile.is_file() and json.loads(sfile.read_text()) != sd:
-        log.info("render-db: settings changed; removing the old views")
+    if sfile.is_file() and view_record(**json.loads(sfile.read_text())) != sd:
+        log.info("render-db: view settings changed; removing the old views")
         for sub in ("images", "depth"):
             shutil.rmtree(out / sub, ignore_errors=True)
         for f in ("views.json", "poses.txt", "intrinsics.txt", "stage.json"):
@@ -217,7 +234,7 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
                  for i in range(0, len(todo), chunk)]
         ex = make_executor(executor)
         try:
-            for res in run_map(ex, _render_chunk, tasks, progress="render-db"):
+            for res in iter_map(ex, _render_chunk, tasks, progress="render-db"):
                 fractions.update(dict(res))
         finally:
             ex.close()

@@ -107,11 +107,18 @@ def make_executor(settings: ExecutorSettings | str = "local", workers: int = 0, 
     return DaskExecutor(n, settings.address)
 
 
-def run_map(executor, fn: Callable, items: list, progress: str | None = None) -> list[Any]:
-    """``executor.map`` with an optional tqdm progress bar; returns the list of results."""
+def iter_map(executor, fn: Callable, items: list, progress: str | None = None) -> Iterator[Any]:
+    """``executor.map`` with an optional tqdm progress bar, yielding results in item order as they
+    come: a consumer that writes each one away holds one result at a time, not all of them (the
+    medium sample's database features are ~9 GB in all), and keeps what is done if the run dies."""
     it = executor.map(fn, items)
     if progress:
         from tqdm import tqdm
 
         it = tqdm(it, total=len(items), desc=progress, unit="it", leave=False, mininterval=2.0)
-    return list(it)
+    yield from it
+
+
+def run_map(executor, fn: Callable, items: list, progress: str | None = None) -> list[Any]:
+    """:func:`iter_map`, collected: the list of results (for small results only)."""
+    return list(iter_map(executor, fn, items, progress))

@@ -47,7 +47,7 @@ from ..io.poses import read_intrinsics, write_covariances, write_poses
 from ..pose import Pose
 from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
 from .database import Database, load_database
-from .executors import ExecutorSettings, make_executor, run_map
+from .executors import ExecutorSettings, iter_map, make_executor, run_map
 from .pnp import PnPSettings
 
 log = logging.getLogger(__name__)
@@ -106,7 +106,8 @@ class LocalizeSettings:
 # Ablations (the paper's tables): each names its own output folder work/localize-<name>/.
 ABLATIONS: dict[str, dict] = {
     "default": {},
-    "paper": {"gps_footprint_radius_m": None, "fallback_rounds": 0},          # the paper's method as published
+    "paper": {"gps_footprint_radius_m": None, "fallback_rounds": 0,           # the paper's method as published
+              "db_paper_pitches": (0.0, 45.0)},                                # (its database: 0 and 45 deg)
     "no-gps": {"gps_footprint_radius_m": None},                               # GPS-denied (paper setting)
     "no-fallback": {"fallback_rounds": 0},
     "no-rot-prior": {"rotation_prior": False},
@@ -116,6 +117,7 @@ ABLATIONS: dict[str, dict] = {
     "top1": {"top_k": 1},
     "render-1h-p45": {"db_highest_only": True, "db_paper_pitches": (45.0,)},   # paper: H=150, pitch 45
     "render-2h-p45": {"db_paper_pitches": (45.0,)},                           # paper: H=150 & 100, pitch 45
+    "render-paper": {"db_paper_pitches": (0.0, 45.0)},                        # the paper's pitches, no 70 deg level
     # learned features (extra gtkit[learned]): XFeat + LighterGlue, retrieval = VLAD on XFeat descriptors
     "xfeat": {"features": XFEAT_FEATURES, "matcher": "lighterglue"},
 }
@@ -228,7 +230,7 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
         ex = make_executor(executor)
         try:
             with h5py.File(feats, "a") as h5:
-                for res in run_map(ex, _extract_db_views, tasks, progress="db features"):
+                for res in iter_map(ex, _extract_db_views, tasks, progress="db features"):
                     for name, f in res:
                         if f is None:
                             raise GtkitError("unreadable database image", db.root / "images" / f"{name}.jpg")
