@@ -14,8 +14,9 @@ from .errors import GtkitError
 class Pose:
     """World-to-camera rigid transform ``x_cam = R @ x_world + t``.
 
-    ``covariance`` (optional) is 6x6 over (rotation vector, translation) of the
-    world-to-camera pose, as pycolmap reports it.
+    ``covariance`` (optional) is 6x6 over (rotation vector [rad], translation [m]) of the
+    world-to-camera pose for the left perturbation ``R' = exp(dr) R, t' = t + dt``
+    (:meth:`from_pycolmap` converts pycolmap's to this).
     """
 
     R: np.ndarray
@@ -61,8 +62,16 @@ class Pose:
         return cls.from_center(R, C)
 
     @classmethod
-    def from_pycolmap(cls, rigid) -> "Pose":
-        return cls(rigid.rotation.matrix(), rigid.translation)
+    def from_pycolmap(cls, rigid, covariance=None) -> "Pose":
+        """From a pycolmap ``Rigid3d`` (cam_from_world), with optionally the 6x6 covariance that
+        pycolmap's ``BACovariance.get_cam_cov_from_world`` gives. That one is in Ceres' quaternion
+        tangent space, whose rotation part is *half* the rotation vector (``q = [cos|d|, sin|d| d/|d|]``
+        turns by 2|d|; measured: its rotation block is 1/4 of the rotation-vector covariance of the
+        same problem), so rotation rows and columns are scaled by 2 here."""
+        if covariance is not None:
+            J = np.diag([2.0, 2.0, 2.0, 1.0, 1.0, 1.0])
+            covariance = J @ np.asarray(covariance, dtype=np.float64) @ J
+        return cls(rigid.rotation.matrix(), rigid.translation, covariance)
 
     def to_pycolmap(self):
         import pycolmap

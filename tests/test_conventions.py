@@ -97,3 +97,54 @@ def test_pixel_convention():
     """COLMAP: the top-left pixel's centre is (0.5, 0.5); array index (0, 0)."""
     np.testing.assert_allclose(pixel_to_index([0.5, 0.5]), [0, 0])
     np.testing.assert_allclose(index_to_pixel([3, 7]), [3.5, 7.5])
+
+
+def test_pycolmap_pose_covariance_is_converted_to_rotation_vectors():
+    """pycolmap's BA covariance of one camera seeing fixed points, converted by Pose.from_pycolmap,
+    equals gtkit's own first-order covariance (rotation vector, translation) of the same problem,
+    up to the pixel variance each assumes."""
+    import pycolmap
+
+    from gtkit.localize.pnp import pose_covariance
+    from gtkit.pose import Pose
+
+    rng = np.random.default_rng(0)
+    K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+    truth = Pose.from_dji(30.0, -50.0, 0.0, np.array([0.0, 0.0, 100.0]))
+    other = Pose.from_dji(0.0, -90.0, 0.0, np.array([42.0, 73.0, 150.0]))   # nadir over the ground seen
+    X = np.c_[rng.uniform(-40, 40, (400, 2)) + [42.0, 73.0], rng.uniform(-5, 5, 400)]
+
+    def project(p):
+        pc = X @ p.R.T + p.t
+        return pc[:, :2] / pc[:, 2:] @ K[:2, :2].T + K[:2, 2], pc[:, 2]
+
+    uv, z = project(truth)
+    uv2, z2 = project(other)
+    keep = (z > 0) & (z2 > 0) & np.all((uv > 0) & (uv < [640, 480]), axis=1) & np.all((uv2 > 0) & (uv2 < [640, 480]), axis=1)
+    X, uv, uv2 = X[keep], uv[keep] + rng.normal(0, 1, (keep.sum(), 2)), uv2[keep]
+    assert len(X) > 50
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=640, height=480,
+                                                    params=[800, 800, 320, 240], camera_id=1))
+    for iid, (p, kp) in enumerate(((truth, uv), (other, uv2)), start=1):
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{iid}.jpg", keypoints=kp, camera_id=1, image_id=iid),
+                                         p.to_pycolmap())
+    for i, x in enumerate(X):
+        rec.add_point3D(x, pycolmap.Track([pycolmap.TrackElement(1, i), pycolmap.TrackElement(2, i)]))
+    cfg = pycolmap.BundleAdjustmentConfig()
+    cfg.add_image(1)
+    cfg.add_image(2)
+    cfg.set_constant_rig_from_world_pose(rec.images[2].frame_id)
+    cfg.set_constant_cam_intrinsics(1)
+    for pid in rec.points3D:
+        cfg.add_constant_point(pid)
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.print_summary = False
+    ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
+    ba.solve()
+    cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, ba)
+    est = Pose.from_pycolmap(rec.images[1].cam_from_world(), cov.get_cam_cov_from_world(1))
+    ours = pose_covariance(est.R, est.t, X, uv, K)
+    scale = np.median(np.diag(est.covariance)[3:] / np.diag(ours)[3:])     # pixel variance: 1 vs the MAD's
+    np.testing.assert_allclose(est.covariance, ours * scale, rtol=0.02, atol=1e-3 * np.abs(ours * scale).max())
+    assert 0.7 < scale < 1.5

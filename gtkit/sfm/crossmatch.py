@@ -17,6 +17,7 @@ from ..camera import Camera
 from ..pose import Pose
 
 log = logging.getLogger(__name__)
+AUTO_PREFIX = "auto:"   # ids of automatic tie points: auto:<query image>:<reference image>:<match>
 
 
 @dataclass
@@ -94,6 +95,6 @@ def cross_matches(query_poses: dict[str, Pose], query_cams: dict[str, Camera], q
                 inl = rng.choice(inl, s.max_per_pair, replace=False)
             n_pairs += 1
             for i in inl:
-                out[f"auto:{qn}:{rn}:{i}"] = {qn: tuple(kq[iq[i]]), rn: tuple(kr[ir[i]])}
+                out[f"{AUTO_PREFIX}{qn}:{rn}:{i}"] = {qn: tuple(kq[iq[i]]), rn: tuple(kr[ir[i]])}
     log.info("cross-block matches: %d from %d query-reference pairs", len(out), n_pairs)
     return out
