@@ -3,13 +3,12 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 
 import numpy as np
 import pytest
 
 from gtkit.errors import GtkitError
-from test_export import (BUILDINGS, EXTENT, FILE_OFFSET, FRAME, _inside, building_color, dsm_errors, edge_distance,
+from test_export import (BUILDINGS, FILE_OFFSET, FRAME, _inside, building_color, dsm_errors, edge_distance,
                          make_project, scene_mesh, texture_rgb)
 
 

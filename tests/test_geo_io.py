@@ -1,5 +1,4 @@
 """CRS handling, pose/intrinsics files, tie points, project folders, EXIF/XMP, bad input."""
-import shutil
 
 import numpy as np
 import pytest

@@ -96,7 +96,6 @@ def run(project: Project | str | Path, settings: ReportSettings | None = None) -
         for n, e in te["per_image"].items():
             rep["per_image"][n].update(e)
         if ref is not None:
-            from ..sfm.geometry import model_poses  # noqa: F401 (poses.txt holds them)
             rp = read_poses(P.stage(REFERENCE_STAGE) / "poses.txt")
             rt = truth_errors(rp, truth, sorted(rp))
             rep["reference_median_pos_err_m"], rep["reference_median_rot_err_deg"] = rt["median_pos_err_m"], rt["median_rot_err_deg"]

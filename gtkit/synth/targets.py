@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io.mesh import Mesh, MeshPart
+from ..io.mesh import MeshPart
 from .world import World
 
 
