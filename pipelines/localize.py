@@ -5,7 +5,8 @@
     python -m pipelines.localize DIR --ablations no-gravity top1
 
 An existing database (work/render_db/) is used as it is; without one it is rendered with the
-default (paper) settings. Each ablation writes work/localize-<name>/ and reports/localization-<name>.json; finished runs
+default settings (the paper's grid plus a 70-degree off-nadir level; ablation 'render-paper' =
+the paper's pitches only). Each ablation writes work/localize-<name>/ and reports/localization-<name>.json; finished runs
 are reused when their settings match, so re-running only computes what changed.
 """
 from __future__ import annotations

@@ -42,6 +42,9 @@ log = logging.getLogger(__name__)
 STAGE = "render_db"
 
 
+PAPER_PITCHES = (0.0, 45.0)   # the UAVD4L paper's database pitches, from nadir
+
+
 @dataclass(frozen=True)
 class RenderDbSettings:
     heights: tuple[float, ...] = (100.0, 150.0)       # H above the model's ground level (m), paper
@@ -50,8 +53,8 @@ class RenderDbSettings:
     # queries are flown with the gimbal 15-70 deg below the horizon (20-75 deg off nadir), so with the
     # paper's levels a 20 deg photo is 25-30 deg from its nearest views (too far for SIFT) or outside
     # gamma_o; with 70 every query is within 15 deg of a level. +50 % views; ablation 'render-paper'.
-    paper_pitches: tuple[float, ...] = (0.0, 45.0, 70.0)
-    yaw_step: float = 45.0                            # alpha_theta (deg): 8 yaws, 16 views a position
+    paper_pitches: tuple[float, ...] = (*PAPER_PITCHES, 70.0)
+    yaw_step: float = 45.0                            # alpha_theta (deg): 8 yaws, 8 views a pitch and position
     width: int = 640                                  # rendered view size (px)
     height: int = 480
     hfov_deg: float = 60.0                            # horizontal field of view of the virtual camera

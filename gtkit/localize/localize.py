@@ -46,7 +46,7 @@ from ..io.atomic import atomic_path, write_json, write_text
 from ..io.poses import read_intrinsics, write_covariances, write_poses
 from ..pose import Pose
 from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
-from .database import Database, load_database
+from .database import PAPER_PITCHES, Database, load_database
 from .executors import ExecutorSettings, iter_map, make_executor, run_map
 from .pnp import PnPSettings
 
@@ -107,7 +107,7 @@ class LocalizeSettings:
 ABLATIONS: dict[str, dict] = {
     "default": {},
     "paper": {"gps_footprint_radius_m": None, "fallback_rounds": 0,           # the paper's method as published
-              "db_paper_pitches": (0.0, 45.0)},                                # (its database: 0 and 45 deg)
+              "db_paper_pitches": PAPER_PITCHES},                              # (its database: 0 and 45 deg)
     "no-gps": {"gps_footprint_radius_m": None},                               # GPS-denied (paper setting)
     "no-fallback": {"fallback_rounds": 0},
     "no-rot-prior": {"rotation_prior": False},
@@ -117,7 +117,7 @@ ABLATIONS: dict[str, dict] = {
     "top1": {"top_k": 1},
     "render-1h-p45": {"db_highest_only": True, "db_paper_pitches": (45.0,)},   # paper: H=150, pitch 45
     "render-2h-p45": {"db_paper_pitches": (45.0,)},                           # paper: H=150 & 100, pitch 45
-    "render-paper": {"db_paper_pitches": (0.0, 45.0)},                        # the paper's pitches, no 70 deg level
+    "render-paper": {"db_paper_pitches": PAPER_PITCHES},                      # the paper's pitches, no 70 deg level
     # learned features (extra gtkit[learned]): XFeat + LighterGlue, retrieval = VLAD on XFeat descriptors
     "xfeat": {"features": XFEAT_FEATURES, "matcher": "lighterglue"},
 }

@@ -280,11 +280,11 @@ def build_joint(ref_rec, blocks: dict[str, pycolmap.Reconstruction], clicks: dic
     return Joint(b.rec, b.image_ids, ref_ids, slot, clicks)
 
 
-def _max_px(tid: str, settings: "RegisterSettings") -> float:
+def _max_px(tid: str, settings: RegisterSettings) -> float:
     return settings.ba_max_auto_px if tid.startswith(AUTO_PREFIX) else settings.ba_max_tie_px
 
 
-def retriangulate_ties(j: Joint, settings: "RegisterSettings") -> tuple[dict, dict]:
+def retriangulate_ties(j: Joint, settings: RegisterSettings) -> tuple[dict, dict]:
     """Every tie point from all its clicks with the joint model's current poses. Returns
     (ties to use: id -> (xyz, images), dropped clicks: id -> [{image, residual_px}])."""
     poses, cams = j.poses_cams()
