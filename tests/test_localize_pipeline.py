@@ -84,6 +84,42 @@ def test_changing_the_pitch_levels_keeps_the_views_and_features_on_disk(site, tm
     assert database.view_record(settings_dict(replace(s0, paper_pitches=(70.0,))), record["inputs"]) == record
 
 
+def test_database_features_resume_after_the_process_is_killed(site, tmp_path):
+    """Database features are flushed chunk by chunk: a run killed (SIGKILL) mid-way leaves a
+    readable feature file, and the next run extracts only the views still missing."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from gtkit.project import Project
+
+    copy = tmp_path / "site"
+    shutil.copytree(site, copy, ignore=shutil.ignore_patterns("localize*", "reports"))
+    code = ("from gtkit.project import Project\n"
+            "from gtkit.localize import localize\n"
+            "from gtkit.localize.database import load_database\n"
+            "from gtkit.localize.executors import ExecutorSettings\n"
+            f"p = Project.load({str(copy)!r})\n"
+            "localize.prepare_database(p, load_database(p), localize.LocalizeSettings(), ExecutorSettings('serial'))\n")
+    feats = localize._db_cache(Project.load(copy), localize.LocalizeSettings()) / "features.h5"
+    proc = subprocess.Popen([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    t0 = time.time()
+    while proc.poll() is None and time.time() - t0 < 120:
+        if feats.is_file() and feats.stat().st_size > 1_000_000:     # a few chunks written
+            proc.send_signal(signal.SIGKILL)
+            break
+        time.sleep(0.05)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "the extraction finished before it could be killed"
+    p = Project.load(copy)
+    db = database.load_database(p)
+    t = localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))
+    assert 0 < t["db_features_views"] < len(db.views)
+    assert localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))["db_features_views"] == 0
+
+
 def test_localize_and_evaluate_against_truth(site):
     assert main(["localize", str(site), "--executor", "local", "--workers", "2"]) == 0
     assert main(["evaluate", str(site), "--what", "localization"]) == 0

@@ -220,7 +220,7 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
     t0 = time.perf_counter()
     try:
         with h5py.File(feats, "a") as h5:
-            todo = [v for v in db.views if v.name not in h5]
+            todo = [v for v in db.views if v.name not in h5 or "desc" not in h5[v.name]]  # desc is written last
     except OSError:  # a run killed mid-write: start the feature file again
         feats.unlink(missing_ok=True)
         todo = list(db.views)
@@ -235,6 +235,7 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
                         if f is None:
                             raise GtkitError("unreadable database image", db.root / "images" / f"{name}.jpg")
                         write_features(h5, name, f)
+                    h5.flush()   # each chunk on disk: a killed run resumes from here
         finally:
             ex.close()
     times["db_features_s"] = time.perf_counter() - t0
