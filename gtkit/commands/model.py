@@ -1,0 +1,60 @@
+"""``gtkit model build|compare``: the reference model from the photos (see :mod:`gtkit.model`).
+
+Examples::
+
+    gtkit model build site                      # after `gtkit sfm site --block reference`
+    gtkit model build site --use                # a delivered model exists: make the built one the project's
+    gtkit model compare site                    # DSM height difference built - delivered (GeoTIFF)
+"""
+from __future__ import annotations
+
+
+def register(sub):
+    from ..model.settings import ModelSettings as S
+
+    p = sub.add_parser("model", help="build the reference model (dense depth, fusion, surface, texture) "
+                       "from the reference photos; compare two models")
+    ms = p.add_subparsers(dest="model_what", metavar="WHAT", required=True)
+    b = ms.add_parser("build", help="textured reference model from the georegistered reference block")
+    b.add_argument("project")
+    b.add_argument("--max-image-size", type=int, default=S.max_image_size, help="px (default %(default)s)")
+    b.add_argument("--neighbours", type=int, default=S.neighbours, help="stereo neighbours a photo (default %(default)s)")
+    b.add_argument("--max-triangles", type=int, default=S.max_triangles, help="simplification budget (default %(default)s)")
+    b.add_argument("--poisson-depth", type=int, default=S.poisson_depth, help="Poisson octree depth (default %(default)s)")
+    b.add_argument("--voxel", type=float, default=S.voxel_m, help="fusion voxel, m (default %(default)s)")
+    b.add_argument("--use", action="store_true",
+                   help="make the built model the project's model even when a delivered one exists "
+                        "(the delivered files move to model/delivered/)")
+    b.add_argument("--force", action="store_true", help="rebuild even when up to date (finished depth maps are kept)")
+    b.set_defaults(func=run_build)
+
+    c = ms.add_parser("compare", help="height difference of two models' DSMs as a GeoTIFF (A - B)")
+    c.add_argument("project")
+    c.add_argument("--a", help="model A (default: the built model)")
+    c.add_argument("--b", help="model B (default: the delivered model)")
+    c.add_argument("--resolution", type=float, default=None, help="metres per cell (default: from the models)")
+    c.add_argument("--out", help="output GeoTIFF (default exports/model_diff.tif)")
+    c.set_defaults(func=run_compare)
+
+
+def run_build(args):
+    from ..model.build import run
+    from ..model.settings import ModelSettings
+
+    s = ModelSettings(max_image_size=args.max_image_size, neighbours=args.neighbours, max_triangles=args.max_triangles,
+                      poisson_depth=args.poisson_depth, voxel_m=args.voxel)
+    r = run(args.project, s, force=args.force, use=True if args.use else None)
+    print(f"model: {r['model']} ({r['triangles']} triangles, {r['parts']} textured parts) from {r['depth_maps']} "
+          f"depth maps of {r['photos']} photos; {r['points']} fused points")
+    print("seconds " + ", ".join(f"{k} {v}" for k, v in r["seconds"].items())
+          + "; peak memory GB " + ", ".join(f"{k} {v}" for k, v in r["peak_memory_gb"].items()))
+    for n, why in r["skipped"].items():
+        print(f"  skipped {n}: {why}")
+
+
+def run_compare(args):
+    from ..model.compare import run
+
+    r = run(args.project, args.a, args.b, args.resolution, args.out)
+    print(f"{r['out']}: A - B over {r['cells']} common cells ({r['resolution']} m): median {r['median']:+.3f} m, "
+          f"median |d| {r['median_abs']:.3f} m, p95 |d| {r['p95_abs']:.3f} m")

@@ -1,0 +1,178 @@
+"""``gtkit model build DIR``: the reference model from the reference photos (the stage).
+
+    run(project, ModelSettings())   # work/sfm_reference -> work/model/... -> model/reference.obj
+
+Steps and their outputs (``work/model/``): ``depth/<key>/<photo>.npz`` (one a photo, kept when a
+run is killed), ``points.ply`` + ``points.laz`` (fused cloud; LAZ in the project CRS), ``surface.ply``
+(trimmed, simplified), then the textured OBJ + offset sidecar. Where the project has no model the
+OBJ is ``model/reference.obj``; where a delivered model is there already, it is
+``model/built/reference.obj`` and the delivered one stays the project's model unless ``use=True``
+(the delivered files then move to ``model/delivered/``). ``project.toml [model]`` records which.
+"""
+from __future__ import annotations
+
+import logging
+import resource
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GtkitError
+from ..io.mesh import Mesh, MeshPart, sidecar_path, write_obj, write_offset_sidecar
+from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
+from . import depth as D
+from . import fusion, surface, texture
+from .settings import ModelSettings
+from .views import block_dir, choose_neighbours, load_image, load_views
+
+log = logging.getLogger(__name__)
+STAGE = "model"
+MODEL_FILE = "reference.obj"
+
+
+def _peak_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+
+
+def _bar(total: int, desc: str, show: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="photo", disable=not show, leave=False)
+
+
+def depth_maps(project: Project, views, neighbours, settings: ModelSettings, folder: Path, show: bool = True) -> dict:
+    """Compute the missing depth maps (one file a photo); returns {name: reason} of failed photos."""
+    gray: dict[str, np.ndarray] = {}
+
+    def img(n):
+        if n not in gray:
+            gray[n] = load_image(project, views[n], gray=True)
+        return gray[n]
+
+    failed = {}
+    with _bar(len(neighbours), "depth maps", show) as bar:
+        for n, nb in neighbours.items():
+            out = D.depth_file(folder, n)
+            if out.is_file():
+                bar.update(1)
+                continue
+            pair = [d for m in nb if (d := D.pair_depth(views[n], views[m], img(n), img(m), settings)) is not None]
+            if len(pair) < settings.min_pair_agree:
+                failed[n] = f"only {len(pair)} neighbour pair(s) could be rectified"
+            else:
+                dm = D.combine_pairs(pair, settings)
+                D.write_depth(out, dm, {"neighbours": nb})
+            bar.update(1)
+    return failed
+
+
+def fuse(project: Project, views, neighbours, settings: ModelSettings, folder: Path, show: bool = True):
+    maps = {n: D.read_depth(D.depth_file(folder, n)) for n in neighbours if D.depth_file(folder, n).is_file()}
+    acc = fusion.VoxelAccumulator(settings.voxel_m)
+    with _bar(len(maps), "fusion", show) as bar:
+        for n, dm in maps.items():
+            v = views[n]
+            xw, rc = fusion.lift(v, dm, settings.fusion_stride)
+            others = [(views[m], maps[m]) for m in neighbours[n] if m in maps]
+            keep = fusion.consistent_count(xw, others, settings.pair_agree) >= settings.min_view_agree
+            xw, rc = xw[keep], rc[keep]
+            rgb = load_image(project, v, gray=False)[rc[:, 0], rc[:, 1]].astype(np.float64)
+            to_cam = v.center - xw
+            to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
+            acc.add(xw, rgb, to_cam)
+            bar.update(1)
+    return acc.result()
+
+
+def _write_model(project: Project, mesh: Mesh, use: bool | None) -> Path:
+    """Write the OBJ where it belongs and record it in project.toml (see the module docstring)."""
+    P = project.paths
+    current = project.config.get("model", {})
+    delivered = (P.model / MODEL_FILE).is_file() and current.get("source") != "built"
+    if delivered and use:
+        keep = P.model / "delivered"
+        keep.mkdir(parents=True, exist_ok=True)
+        for f in list(P.model.iterdir()):
+            if f.is_file():
+                shutil.move(str(f), keep / f.name)
+        delivered = False
+    out = (P.model / "built" / MODEL_FILE) if delivered else (P.model / MODEL_FILE)
+    if out.parent.is_dir() and out.parent == P.model:  # a previous built model: replace its files
+        for f in P.model.glob("reference*"):
+            if f.is_file():
+                f.unlink()
+    write_obj(out, mesh)
+    write_offset_sidecar(out, project.frame.crs_spec, project.frame.origin)
+    project.config["model"] = {"source": "built" if not delivered else "delivered",
+                               "path": str((P.model / MODEL_FILE).relative_to(P.root)),
+                               "built": str(out.relative_to(P.root)),
+                               "when": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    project.save()
+    return out
+
+
+def run(project: Project | str | Path, settings: ModelSettings | None = None, *, force: bool = False,
+        use: bool | None = None, show: bool = True) -> dict:
+    """Build the reference model; returns the summary (also in ``work/model/stage.json``)."""
+    project = project if isinstance(project, Project) else Project.load(project)
+    settings = settings or ModelSettings()
+    P = project.paths
+    work = P.stage(STAGE)
+    block = block_dir(project)
+    views, skipped = load_views(project, settings)
+    inputs = {"poses": file_fingerprint(block / "poses.txt"), "intrinsics": file_fingerprint(block / "intrinsics.txt")}
+    if not force and stage_done(work, settings, inputs) and use is None:
+        import json
+
+        return json.loads((work / "stage.json").read_text())["summary"]
+    if len(views) < 3:
+        raise GtkitError(f"only {len(views)} usable registered photos in the reference block", block)
+    t = {"start": time.time()}
+    mem = {}
+    neighbours, sk = choose_neighbours(views, settings)
+    skipped.update(sk)
+    for n, why in sk.items():
+        log.warning("skipping %s: %s", n, why)
+    if not neighbours:
+        raise GtkitError("no photo has enough neighbours for stereo (see the reasons with -v)", block)
+    depth_keys = {k: v for k, v in settings_dict(settings).items()
+                  if k in ("max_image_size", "neighbours", "min_neighbours", "max_angle_deg", "baseline_ratio",
+                           "target_ratio", "max_disparities", "block_size", "pair_agree", "min_pair_agree")}
+    folder = work / "depth" / settings_key({"depth": depth_keys, "inputs": inputs})
+    folder.mkdir(parents=True, exist_ok=True)
+    failed = depth_maps(project, views, neighbours, settings, folder, show)
+    skipped.update(failed)
+    t["depth"], mem["depth"] = time.time(), _peak_gb()
+
+    xyz, rgb, toward, count = fuse(project, views, neighbours, settings, folder, show)
+    if len(xyz) < 100:
+        raise GtkitError(f"fusion kept only {len(xyz)} points: the depth maps do not agree", folder)
+    origin = np.asarray(project.frame.origin)
+    fusion.write_laz(work / "points.laz", xyz + origin, rgb, project.frame.crs_spec)
+    t["fusion"], mem["fusion"] = time.time(), _peak_gb()
+
+    normals = surface.estimate_normals(xyz, toward, settings.voxel_m)
+    V, F = surface.poisson(xyz, normals, settings)
+    n_poisson = len(F)
+    V, F = surface.simplify(V, F, settings.max_triangles)
+    t["surface"], mem["surface"] = time.time(), _peak_gb()
+
+    with _bar(len(views), "texture (visibility)", show) as bar:
+        names, best = texture.choose_views(V, F, views, progress=bar)
+    parts = texture.textured_parts(V, F, views, names, best, lambda v: load_image(project, v, gray=False))
+    out = _write_model(project, Mesh(parts), use)
+    t["texture"], mem["texture"] = time.time(), _peak_gb()
+
+    steps = ["depth", "fusion", "surface", "texture"]
+    prev, seconds = t["start"], {}
+    for s in steps:
+        seconds[s], prev = round(t[s] - prev, 1), t[s]
+    summary = {"model": str(out.relative_to(P.root)), "photos": len(views) + len(skipped),
+               "depth_maps": len(neighbours) - len(failed), "skipped": skipped, "points": int(len(xyz)),
+               "poisson_triangles": int(n_poisson), "triangles": int(len(F)), "parts": len(parts),
+               "unseen_faces": int((best < 0).sum()), "seconds": seconds,
+               "peak_memory_gb": {k: round(v, 2) for k, v in mem.items()}}
+    mark_stage_done(work, settings, inputs, **summary)
+    return summary

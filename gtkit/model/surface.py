@@ -1,0 +1,64 @@
+"""The surface: screened Poisson reconstruction of the fused points (Open3D), trimmed to where the
+points support it, simplified to a triangle budget (pymeshlab quadric edge collapse).
+
+Poisson keeps vertical facades (the oblique photos put points on them, with normals turned toward
+the cameras that saw them) and closes small gaps; it also invents surface far from any point (a
+closed bubble), which the trimming removes: every triangle with a vertex farther than ``trim_m``
+from the nearest fused point goes.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .settings import ModelSettings
+
+
+def estimate_normals(xyz: np.ndarray, toward: np.ndarray, voxel: float) -> np.ndarray:
+    """Unit normals from the neighbourhood (PCA), flipped to face ``toward`` (unit vectors to the cameras)."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * voxel, max_nn=24))
+    n = np.asarray(pc.normals)
+    flip = np.einsum("ij,ij->i", n, toward) < 0
+    n[flip] *= -1
+    return n
+
+
+def poisson(xyz: np.ndarray, normals: np.ndarray, settings: ModelSettings) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of the Poisson surface, trimmed to the points' support."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    pc.normals = o3d.utility.Vector3dVector(normals)
+    mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=settings.poisson_depth,
+                                                                            linear_fit=True, n_threads=2)
+    V = np.asarray(mesh.vertices)
+    F = np.asarray(mesh.triangles)
+    dist, _ = cKDTree(xyz).query(V, k=1, distance_upper_bound=settings.trim_m * 2)
+    bad_v = dist > settings.trim_m
+    keep = ~bad_v[F].any(1)
+    return _compact(V, F[keep])
+
+
+def _compact(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    used = np.unique(F)
+    remap = np.full(len(V), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[F]
+
+
+def simplify(V: np.ndarray, F: np.ndarray, max_triangles: int) -> tuple[np.ndarray, np.ndarray]:
+    """Quadric edge collapse to at most ``max_triangles`` (boundaries and planarity kept)."""
+    import pymeshlab
+
+    if len(F) <= max_triangles:
+        return V, F
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=V, face_matrix=F.astype(np.int32)))
+    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(max_triangles), preserveboundary=True,
+                                                boundaryweight=2.0, preservenormal=True, planarquadric=True,
+                                                qualitythr=0.3, autoclean=True)
+    m = ms.current_mesh()
+    return np.asarray(m.vertex_matrix(), np.float64), np.asarray(m.face_matrix(), np.int64)
