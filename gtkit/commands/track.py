@@ -6,6 +6,9 @@
 """
 from __future__ import annotations
 
+import argparse
+import textwrap
+
 ACTIONS = ("calibrate", "evaluate", "run")
 
 
@@ -13,10 +16,12 @@ def register(sub):
     p = sub.add_parser("track", help="3D target tracks from zoom-photo detections (ray cast on the DSM); "
                        "'track calibrate DIR' calibrates the wide/zoom rig, 'track evaluate DIR' scores "
                        "the tracks against truth/",
-                       description=__doc__.split("\n\n", 1)[1] if "\n\n" in __doc__ else None)
+                       description=textwrap.dedent(__doc__.split("\n\n", 1)[1]).strip(),
+                       usage="gtkit track [calibrate | evaluate | run] DIR [options]",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)  # the usage lines as written
     p.add_argument("first", metavar="[ACTION] DIR", help="project folder, optionally preceded by "
                    "calibrate | evaluate | run (default run)")
-    p.add_argument("second", nargs="?", default=None, help=a_help())
+    p.add_argument("second", nargs="?", default=None, metavar="[DIR]", help=a_help())
     p.add_argument("--poses", default="", help="wide pose file (name qw qx qy qz tx ty tz); default "
                    "work/localize/poses.txt; e.g. a pseudo-GT pose file")
     p.add_argument("--covariances", default="", help="6x6 pose covariances (default: covariances.txt "
