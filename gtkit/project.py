@@ -118,9 +118,11 @@ class Project:
         return self.config.get(name, {})
 
     def record_import(self, kind: str, source: str | Path, **info) -> None:
-        """Remember in project.toml what was imported and from where."""
+        """Remember in project.toml what was imported and from where. ``source`` is kept as given
+        (an outside file); paths of what was written into the project are stored relative to it."""
         imports = self.config.setdefault("imports", {})
-        imports[kind] = {"source": str(source), "when": time.strftime("%Y-%m-%dT%H:%M:%S"), **info}
+        imports[kind] = {"source": str(source), "when": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                         **relative_paths(info, self.paths.root)}
         self.save()
 
 
@@ -147,7 +149,9 @@ def settings_key(settings: Any) -> str:
 
 
 def stage_done(stage_dir: Path, settings: Any, inputs: dict | None = None) -> bool:
-    """True when ``stage_dir`` holds a finished run made with these settings (and inputs)."""
+    """True when ``stage_dir`` holds a finished run made with these settings (and inputs).
+    Paths inside the project are compared relative to its root, so a copied or moved project
+    resumes; a record written before that (absolute paths) still counts where it was made."""
     rec = Path(stage_dir) / STAGE_RECORD
     if not rec.is_file():
         return False
@@ -155,16 +159,73 @@ def stage_done(stage_dir: Path, settings: Any, inputs: dict | None = None) -> bo
         data = json.loads(rec.read_text())
     except json.JSONDecodeError:
         return False
-    return data.get("key") == settings_key({"settings": settings_dict(settings), "inputs": inputs or {}})
+    root = find_root(stage_dir)
+    raw = {"settings": settings_dict(settings), "inputs": inputs or {}}
+    return data.get("key") in (settings_key(relative_paths(raw, root)), settings_key(raw))
 
 
 def mark_stage_done(stage_dir: Path, settings: Any, inputs: dict | None = None, **summary) -> None:
     """Write the record that makes a later run with the same settings skip this stage.
-    Call it last, after every output is written."""
+    Call it last, after every output is written. Paths inside the project are stored relative to
+    its root (see :func:`relative_paths`)."""
+    root = find_root(stage_dir)
+    rec = relative_paths({"settings": settings_dict(settings), "inputs": inputs or {}}, root)
     write_json(Path(stage_dir) / STAGE_RECORD, {
-        "key": settings_key({"settings": settings_dict(settings), "inputs": inputs or {}}),
-        "settings": settings_dict(settings), "inputs": inputs or {},
-        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": summary})
+        "key": settings_key(rec), **rec,
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": relative_paths(summary, root)})
+
+
+# --- portable projects: paths inside the project are stored relative to its root ---------------
+
+def find_root(path: str | Path) -> Path | None:
+    """The project folder holding ``path`` (the nearest parent with a project.toml), or None."""
+    p = Path(path)
+    for d in (p, *p.parents):
+        if (d / PROJECT_FILE).is_file():
+            return d
+    return None
+
+
+def relative_paths(obj: Any, root: str | Path | None) -> Any:
+    """``obj`` (JSON-like) with every string that is a path inside ``root`` (as given, or resolved)
+    made relative to it, in dict keys too. Paths outside the project (import sources) stay absolute."""
+    if root is None:
+        return obj
+    root = Path(root)
+    prefixes = sorted({str(root), str(root.resolve()), str(root.absolute())}, key=len, reverse=True)
+
+    def rel(s: str) -> str:
+        for pre in prefixes:
+            if s == pre:
+                return "."
+            if s.startswith(pre.rstrip("/") + "/"):
+                return s[len(pre.rstrip("/")) + 1:]
+        return s
+
+    if isinstance(obj, str):
+        return rel(obj)
+    if isinstance(obj, dict):
+        return {(rel(k) if isinstance(k, str) else k): relative_paths(v, root) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [relative_paths(v, root) for v in obj]
+    return obj
+
+
+def resolve_path(p: str | Path, root: str | Path) -> Path:
+    """A path read from a project file: relative ones are under ``root``; an absolute one that no
+    longer exists (a project copied or moved before paths were stored relative) is looked up under
+    ``root`` by its trailing components (``/old/site/work/register/poses.txt`` -> ``work/register/poses.txt``)."""
+    p, root = Path(p), Path(root)
+    if not p.is_absolute():
+        return root / p
+    if p.exists():
+        return p
+    parts = p.parts[1:]
+    for k in range(len(parts)):
+        cand = root.joinpath(*parts[k:])
+        if cand.exists():
+            return cand
+    return p
 
 
 def clear_stage(stage_dir: Path) -> None:

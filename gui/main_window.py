@@ -10,7 +10,7 @@ from PySide6.QtGui import QAction, QKeySequence, QUndoStack
 from PySide6.QtWidgets import QMainWindow, QTabWidget
 
 from gtkit.io.poses import read_poses
-from gtkit.project import Project
+from gtkit.project import Project, resolve_path
 from gtkit.render.overlay import default_pose_file
 
 from .images import ImageCache
@@ -51,7 +51,8 @@ class MainWindow(QMainWindow):
         self.store = TiePointStore(P.tiepoints, on_saved=on_saved)
         self.undo_stack = QUndoStack(self)
         self.cache = ImageCache()
-        pose_file = poses or self.session.get("review", {}).get("pose_file") or default_pose_file(P)
+        stored = self.session.get("review", {}).get("pose_file")  # relative to the project (older: absolute)
+        pose_file = poses or (resolve_path(stored, P.root) if stored else None) or default_pose_file(P)
         rank_poses = {}  # registered poses where they exist (reference block, pseudo-GT), else priors
         for f in (P.stage("sfm_reference") / "poses.txt", default_pose_file(P)):
             if f is not None and f.is_file():

@@ -4,6 +4,7 @@ image (accept Y, reject X, needs work W) saved to ``review.json`` at once."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 from PySide6.QtCore import Qt, Signal
@@ -206,7 +207,7 @@ class ReviewPage(QWidget):
         if not self.image:
             return
         a = self._cache[5] if self._cache else None
-        info = {"pose_file": str(self.pose_file)}
+        info = {"pose_file": self.stored_pose_file()}
         if a is not None and np.isfinite(a.misalignment_px):
             info["misalignment_px"] = round(a.misalignment_px, 3)
         verdicts = set_status(self.paths.review, self.image, status, self.note.currentText(), **info)
@@ -223,7 +224,14 @@ class ReviewPage(QWidget):
 
     def session_state(self) -> dict:
         return {"image": self.image, "mode": self.mode, "slider": self.slider.value(), "tile": self.tile.value(),
-                "pose_file": str(self.pose_file) if self.pose_file else None}
+                "pose_file": self.stored_pose_file()}
+
+    def stored_pose_file(self) -> str | None:
+        """The pose file as project files store it: relative to the project root when inside it
+        (a copied or moved project then reviews its own poses), else absolute (an outside file)."""
+        from gtkit.project import relative_paths
+
+        return relative_paths(str(Path(self.pose_file).absolute()), self.paths.root) if self.pose_file else None
 
     def restore(self, st: dict):
         if st.get("slider") is not None:

@@ -48,11 +48,11 @@ def test_import_tiled_model_and_blocks_exchange(project, site_mesh, tmp_path, ca
     assert main(["import", "poses", str(project.paths.root), str(xml)]) == 0
     rec = _imports(project)["poses"]
     assert rec["format"] == "blocks_exchange" and rec["n_images"] == 5
-    back = read_poses(rec["poses"])
+    back = read_poses(project.paths.root / rec["poses"])  # stored relative to the project
     assert max(max(poses[k].error_to(back[k])) for k in poses) < 1e-6
     import pycolmap
 
-    assert pycolmap.Reconstruction(rec["colmap"]).num_reg_images() == 5
+    assert pycolmap.Reconstruction(project.paths.root / rec["colmap"]).num_reg_images() == 5
     assert "imported 5 poses" in capsys.readouterr().out
     # the same block zipped (ContextCapture's .xmlz), COLMAP export as text
     import zipfile
@@ -63,8 +63,8 @@ def test_import_tiled_model_and_blocks_exchange(project, site_mesh, tmp_path, ca
     rec = _imports(project)["poses"]
     assert rec["n_images"] == 5 and (project.paths.stage("import") / "colmap" / "images.txt").is_file()
     # and back in from the COLMAP model gtkit wrote
-    assert main(["import", "poses", str(project.paths.root), rec["colmap"]]) == 0
-    back = read_poses(_imports(project)["poses"]["poses"])
+    assert main(["import", "poses", str(project.paths.root), str(project.paths.root / rec["colmap"])]) == 0
+    back = read_poses(project.paths.root / _imports(project)["poses"]["poses"])
     assert _imports(project)["poses"]["format"] == "colmap"
     assert max(max(poses[k].error_to(back[k])) for k in poses) < 1e-6
 

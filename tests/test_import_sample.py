@@ -68,13 +68,13 @@ def test_sample_truth_through_blocks_exchange(site, tmp_path):
     xml = write_blocks_exchange(tmp_path / "truth_block.xml", poses, cams, site.frame, image_root=P.images)
     assert main(["import", "poses", str(P.root), str(xml)]) == 0
     rec = site.load(P.root).config["imports"]["poses"]
-    back = read_poses(rec["poses"])
+    back = read_poses(P.root / rec["poses"])  # stored relative to the project
     worst_m = max(poses[k].error_to(back[k])[0] for k in poses)
     worst_deg = max(poses[k].error_to(back[k])[1] for k in poses)
     assert set(back) == set(poses) and worst_m <= 1e-6 and worst_deg <= 1e-6, (worst_m, worst_deg)
     import pycolmap
 
-    rec_c = pycolmap.Reconstruction(rec["colmap"])
+    rec_c = pycolmap.Reconstruction(P.root / rec["colmap"])
     assert rec_c.num_reg_images() == len(poses)
 
 

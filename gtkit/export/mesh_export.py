@@ -28,7 +28,7 @@ from ..errors import GtkitError
 from ..geo import crs_name
 from ..io.atomic import atomic_path, write_json
 from ..io.mesh import Mesh, MeshPart, load_model, read_mesh_file, sidecar_path, write_obj, write_offset_sidecar
-from ..project import Project, mark_stage_done, settings_dict, stage_done
+from ..project import Project, mark_stage_done, relative_paths, settings_dict, stage_done
 from .sources import reference_model, stage_inputs
 
 log = logging.getLogger(__name__)
@@ -71,7 +71,7 @@ def run(project: Project | str | Path, settings: MeshExportSettings | None = Non
     stored = mesh.translated(np.asarray(proj.frame.origin) - file_offset)
     write_mesh(out, stored, settings.format)
     write_offset_sidecar(out, crs_name(proj.frame.crs), file_offset)
-    _annotate_sidecar(out, settings.format, str(src))
+    _annotate_sidecar(out, settings.format, relative_paths(str(src), proj.paths.root))  # relative inside the project
     mark_stage_done(stage_dir, settings, inputs, path=str(out), triangles_in=n_in, triangles_out=mesh.n_triangles,
                     offset=file_offset.tolist(), crs=crs_name(proj.frame.crs), settings_used=settings_dict(settings))
     log.info("mesh %s: %d triangles (from %d), offset %s in %s", out, mesh.n_triangles, n_in,
@@ -86,6 +86,8 @@ def _annotate_sidecar(out: Path, fmt: str, source: str) -> None:
     d = json.loads(p.read_text())
     d["axes"] = "x east, y north, z up (metres)" + (" -- not glTF's y-up" if fmt == "glb" else "")
     d["source"] = source
+    if not Path(source).is_absolute():
+        d["source_relative_to"] = "the project folder"
     write_json(p, d)
 
 

@@ -45,7 +45,8 @@ from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json, write_text
 from ..io.poses import read_intrinsics, write_covariances, write_poses
 from ..pose import Pose
-from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
+from ..project import (Project, file_fingerprint, mark_stage_done, relative_paths, settings_dict, settings_key,
+                       stage_done)
 from .database import PAPER_PITCHES, Database, load_database
 from .executors import ExecutorSettings, iter_map, make_executor, run_map
 from .pnp import PnPSettings
@@ -545,10 +546,10 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
              for k, (v, _s) in enumerate(r.get("retrieved", []) + r.get("fallback_retrieved", []))]
     write_text(out / "pairs.txt", "# query database_view rank\n" + "\n".join(pairs) + "\n")
     n_ok = len(poses)
-    write_json(out / "status.json", {
+    write_json(out / "status.json", relative_paths({  # portable: paths relative to the project root
         "ablation": ablation, "settings": settings_dict(settings), "n_queries": len(names), "n_localized": n_ok,
         "database_views": len(db.views), "offline": offline, "wall_s": wall, "total_s": time.perf_counter() - t_all,
-        "executor": asdict(executor), "queries": results})
+        "executor": asdict(executor), "queries": results}, project.paths.root))
     mark_stage_done(out, settings, inputs, n_queries=len(names), n_localized=n_ok, wall_s=round(wall, 2))
     log.info("localize (%s): %d of %d queries localized in %.1f s", ablation, n_ok, len(names), wall)
     return out

@@ -469,5 +469,7 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None,
                "median_misalignment_px": med("misalignment_px"),
                "median_edge_distance_px": med("edge_distance_px"),
                "images": per}
-    write_json(out / "alignment.json", summary)
+    from ..project import relative_paths
+
+    write_json(out / "alignment.json", relative_paths(summary, proj.paths.root))  # paths relative to the project
     return summary

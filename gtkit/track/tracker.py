@@ -30,7 +30,8 @@ from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
 from ..io.poses import read_covariances, read_poses
 from ..pose import Pose
-from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done
+from ..project import (Project, file_fingerprint, mark_stage_done, relative_paths, resolve_path, settings_dict,
+                       stage_done)
 from .calibrate import query_photos, wide_name_for
 from .raycast import MESSAGES, cast_rays
 from .rig import Rig
@@ -268,7 +269,9 @@ def run(project: Project | str | Path, settings: TrackSettings | None = None, fo
     summary_path = stage_dir / "summary.json"
     if not force and P.tracks.is_file() and summary_path.is_file() and stage_done(stage_dir, s, inputs):
         log.info("track: up to date (%s)", P.tracks)
-        return json.loads(summary_path.read_text())
+        done = json.loads(summary_path.read_text())
+        return {k: str(resolve_path(v, P.root)) if k in ("poses", "pose_covariances", "csv", "geojson") and v else v
+                for k, v in done.items()}
     t0 = time.perf_counter()
     recs = locate(dets, poses, covs, rig, dsm, project, s)
     if s.smooth:
@@ -284,7 +287,7 @@ def run(project: Project | str | Path, settings: TrackSettings | None = None, fo
                "poses": str(pose_path), "pose_covariances": str(cov_path) if cov_path.is_file() else None,
                "median_sigma_h_m": float(np.median(sig)) if sig else None, "csv": str(csv_path),
                "geojson": str(gj), "seconds": round(time.perf_counter() - t0, 3), "settings": settings_dict(s)}
-    write_json(summary_path, summary)
+    write_json(summary_path, relative_paths(summary, P.root))  # portable: paths relative to the project
     mark_stage_done(stage_dir, s, inputs, n_located=summary["n_located"], n_detections=len(recs))
     log.info("track: %d of %d detections located -> %s", summary["n_located"], len(recs), csv_path)
     return summary
