@@ -17,7 +17,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from gtkit.sfm import blocks, report  # noqa: E402
+from gtkit.evaluate import gt_report as report  # noqa: E402
+from gtkit.sfm import blocks  # noqa: E402
 from pipelines.pseudo_gt import main as pseudo_gt  # noqa: E402
 
 

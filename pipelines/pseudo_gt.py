@@ -23,7 +23,8 @@ from gtkit.errors import GtkitError
 from gtkit.project import Project
 
 from ._timing import timed
-from gtkit.sfm import blocks, register, report
+from gtkit.evaluate import gt_report as report  # the report plus checks against truth / a point cloud
+from gtkit.sfm import blocks, register
 
 log = logging.getLogger("pseudo_gt")
 

@@ -15,7 +15,8 @@ from gtkit.geo import GeoFrame
 from gtkit.io.odm import parse_odm_crs, read_gcp_list, read_geo_txt
 from gtkit.io.poses import read_intrinsics, read_poses
 from gtkit.project import Project
-from gtkit.sfm import blocks, report
+from gtkit.evaluate import gt_report as report  # the report with its checks (gtkit report)
+from gtkit.sfm import blocks
 
 pytestmark = pytest.mark.skipif(not (BRIGHTON / "images").is_dir(), reason="Brighton Beach photos not available")
 

@@ -61,7 +61,7 @@ def test_twenty_percent_gross_mistakes(small, tmp_path):
     root, _ = small
     bad = _perturbed(root, tmp_path / "p", 0.2)
     res = register.run(tmp_path / "p")
-    from gtkit.sfm import report
+    from gtkit.evaluate import gt_report as report
 
     rep = report.run(tmp_path / "p")
     assert rep["n_registered"] == rep["n_images"]

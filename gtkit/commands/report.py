@@ -11,8 +11,8 @@ def register(sub):
 
 
 def run(args):
-    from ..sfm.report import ReportSettings
-    from ..sfm.report import run as run_report
+    from ..evaluate.gt_report import ReportSettings  # the stages' report + checks against truth / a point cloud
+    from ..evaluate.gt_report import run as run_report
 
     r = run_report(args.project, ReportSettings(args.point_cloud, args.point_cloud_crs))
     print(f"registered {r['n_registered']}/{r['n_images']}; median reprojection {r.get('median_reproj_px')} px; "

@@ -2,6 +2,7 @@
 ``truth/`` poses, and an independent point cloud (e.g. a LAS/LAZ from other software)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -65,3 +66,62 @@ def cloud_offsets(points: np.ndarray, cloud: np.ndarray, k: int = 8, iterations:
             "nn_distance_median_m": float(np.median(d0)), "nn_distance_after_shift_median_m": float(np.median(d)),
             "method": "vertical: median of z minus the median z of the 8 nearest cloud points in plan; horizontal: "
                       "translation-only ICP (median of nearest-neighbour offsets, vertical offset removed first)"}
+
+
+# --- ``gtkit report``: the pseudo-GT report (gtkit.sfm.report) plus the checks made here --------
+
+@dataclass
+class ReportSettings:
+    point_cloud: str | None = None      # independent LAS/LAZ to compare gtkit's reference points with
+    point_cloud_crs: str | None = None  # its CRS when the file does not say (default: the file's, else project's)
+
+
+def run(project, settings: ReportSettings | None = None) -> dict:
+    """``reports/gt_report.json`` + ``.md``: the figures of :func:`gtkit.sfm.report.collect`, plus
+    errors against ``truth/`` poses (sample sites) and the offset from an independent point cloud."""
+    from ..project import Project
+    from ..sfm import report
+    from ..sfm.blocks import REFERENCE_STAGE
+    from ..sfm.register import STAGE as REGISTER_STAGE
+
+    project = project if isinstance(project, Project) else Project.load(project)
+    settings = settings or ReportSettings()
+    P = project.paths
+    rep = report.collect(project)
+    checks: dict = {"rows": [], "after_table": [], "plots": [], "columns": []}
+    truth = P.truth / "poses.txt"
+    if truth.is_file():
+        reg_poses = P.stage(REGISTER_STAGE) / "poses.txt"
+        est = read_poses(reg_poses) if rep.get("n_registered") and reg_poses.is_file() else {}
+        te = truth_errors(est, truth, sorted(rep["per_image"]))
+        rep["median_pos_err_m"], rep["median_rot_err_deg"] = te["median_pos_err_m"], te["median_rot_err_deg"]
+        rep["truth_recall"] = {k: v for k, v in te.items() if k.startswith("recall")}
+        for n, e in te["per_image"].items():
+            rep["per_image"][n].update(e)
+        checks["rows"] += [f"| median position error vs truth | {_fmt(rep['median_pos_err_m'])} m |",
+                           f"| median rotation error vs truth | {_fmt(rep['median_rot_err_deg'])} ° |"]
+        if rep.get("reference_block") is not None:
+            rp = read_poses(P.stage(REFERENCE_STAGE) / "poses.txt")
+            rt = truth_errors(rp, truth, sorted(rp))
+            rep["reference_median_pos_err_m"], rep["reference_median_rot_err_deg"] = rt["median_pos_err_m"], rt["median_rot_err_deg"]
+            checks["rows"].append(f"| reference block vs truth | {_fmt(rep['reference_median_pos_err_m'])} m, "
+                                  f"{_fmt(rep['reference_median_rot_err_deg'])} ° |")
+        checks["plots"].append(("position error vs truth per query photo", "pos_err_m", "gt_pos_err.svg", 0.10))
+        checks["columns"] += [("pos_err_m", "pos err m"), ("rot_err_deg", "rot err °")]
+    if settings.point_cloud and rep.get("reference_block") is not None:
+        import pycolmap
+
+        rec = pycolmap.Reconstruction(P.stage(REFERENCE_STAGE) / "model")
+        pts = np.array([p.xyz for p in rec.points3D.values()])
+        cloud = read_point_cloud(Path(settings.point_cloud), project.frame, settings.point_cloud_crs)
+        pc = rep["point_cloud_comparison"] = {"cloud": str(settings.point_cloud), **cloud_offsets(pts, cloud)}
+        name = Path(pc["cloud"]).name
+        checks["rows"] += [f"| vertical offset from {name} | {pc['vertical_offset_m']:+.3f} m (median) |",
+                           f"| horizontal offset from {name} | {pc['horizontal_offset_m']:.3f} m "
+                           f"(dx {pc['horizontal_offset_xy_m'][0]:+.3f}, dy {pc['horizontal_offset_xy_m'][1]:+.3f}) |"]
+        checks["after_table"] += ["", f"Method: {pc['method']}."]
+    return report.write(project, rep, checks)
+
+
+def _fmt(v, nd=3):
+    return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))

@@ -1,10 +1,11 @@
-"""``gtkit report DIR``: the pseudo-GT quality report, ``reports/gt_report.json`` plus a readable
-``reports/gt_report.md`` with SVG plots. Truth (``truth/``) and an independent point cloud are
-read only through :mod:`gtkit.evaluate.gt_report`."""
+"""The pseudo-GT quality report from what the estimating stages wrote (blocks, registration,
+annotators' review): ``reports/gt_report.json`` plus a readable ``reports/gt_report.md`` with SVG
+plots. Checks against anything the estimator never sees (the sample's ``truth/``, an independent
+point cloud) are added by :mod:`gtkit.evaluate.gt_report`, which ``gtkit report`` runs; this module
+never reads them."""
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,12 +15,6 @@ from ..io.poses import read_poses
 from ..project import Project
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
 from .register import STAGE as REGISTER_STAGE
-
-
-@dataclass
-class ReportSettings:
-    point_cloud: str | None = None      # independent LAS/LAZ to compare gtkit's reference points with
-    point_cloud_crs: str | None = None  # its CRS when the file does not say (default: the file's, else project's)
 
 
 def _load(p: Path):
@@ -55,9 +50,8 @@ def _fmt(v, nd=3):
     return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
 
 
-def run(project: Project | str | Path, settings: ReportSettings | None = None) -> dict:
-    project = project if isinstance(project, Project) else Project.load(project)
-    settings = settings or ReportSettings()
+def collect(project: Project) -> dict:
+    """The report's figures from the stages' own outputs (no truth): blocks, registration, review."""
     P = project.paths
     ref = _load(P.stage(REFERENCE_STAGE) / "block.json")
     qsum = _load(P.stage(QUERIES_STAGE) / "summary.json") or {}
@@ -86,35 +80,28 @@ def run(project: Project | str | Path, settings: ReportSettings | None = None) -
     if review:
         vals = list(review.values())
         rep["review"] = {k: vals.count(k) for k in ("accept", "reject", "needs-work")}
-    truth = P.truth / "poses.txt"
-    if truth.is_file():
-        from ..evaluate.gt_report import truth_errors
-
-        te = truth_errors(est, truth, names)
-        rep["median_pos_err_m"], rep["median_rot_err_deg"] = te["median_pos_err_m"], te["median_rot_err_deg"]
-        rep["truth_recall"] = {k: v for k, v in te.items() if k.startswith("recall")}
-        for n, e in te["per_image"].items():
-            rep["per_image"][n].update(e)
-        if ref is not None:
-            rp = read_poses(P.stage(REFERENCE_STAGE) / "poses.txt")
-            rt = truth_errors(rp, truth, sorted(rp))
-            rep["reference_median_pos_err_m"], rep["reference_median_rot_err_deg"] = rt["median_pos_err_m"], rt["median_rot_err_deg"]
-    if settings.point_cloud and ref is not None:
-        import pycolmap
-
-        from ..evaluate.gt_report import cloud_offsets, read_point_cloud
-
-        rec = pycolmap.Reconstruction(P.stage(REFERENCE_STAGE) / "model")
-        pts = np.array([p.xyz for p in rec.points3D.values()])
-        cloud = read_point_cloud(Path(settings.point_cloud), project.frame, settings.point_cloud_crs)
-        rep["point_cloud_comparison"] = {"cloud": str(settings.point_cloud), **cloud_offsets(pts, cloud)}
-    P.reports.mkdir(parents=True, exist_ok=True)
-    write_json(P.reports / "gt_report.json", rep, indent=1)
-    write_text(P.reports / "gt_report.md", _markdown(rep, P.reports))
     return rep
 
 
-def _markdown(rep: dict, folder: Path) -> str:
+def write(project: Project, rep: dict, checks=None) -> dict:
+    """Write ``reports/gt_report.json`` and ``gt_report.md``. ``checks`` (from evaluation) adds to the
+    Markdown: ``rows`` of the figure table, lines ``after_table``, per-image bar ``plots``
+    ``(title, key, file, limit)`` and per-image ``columns`` ``(key, header)``."""
+    P = project.paths
+    P.reports.mkdir(parents=True, exist_ok=True)
+    write_json(P.reports / "gt_report.json", rep, indent=1)
+    write_text(P.reports / "gt_report.md", _markdown(rep, P.reports, checks or {}))
+    return rep
+
+
+def run(project: Project | str | Path) -> dict:
+    """The report from the stages' outputs alone (``gtkit report`` adds evaluation's checks:
+    :func:`gtkit.evaluate.gt_report.run`)."""
+    project = project if isinstance(project, Project) else Project.load(project)
+    return write(project, collect(project))
+
+
+def _markdown(rep: dict, folder: Path, checks: dict) -> str:
     L = [f"# Pseudo-GT report: {rep['project']}", ""]
     L += ["| figure | value |", "|---|---|",
           f"| query photos registered | {rep['n_registered']} / {rep['n_images']} |",
@@ -122,12 +109,7 @@ def _markdown(rep: dict, folder: Path) -> str:
           f"| median tie-point reprojection error | {_fmt(rep.get('median_tiepoint_reproj_px'), 2)} px |",
           f"| clicked / automatic tie points in the joint BA | {rep.get('n_tiepoints_in_ba', 0)} / "
           f"{rep.get('n_auto_tiepoints_in_ba', 0)} |"]
-    if "median_pos_err_m" in rep:
-        L += [f"| median position error vs truth | {_fmt(rep['median_pos_err_m'])} m |",
-              f"| median rotation error vs truth | {_fmt(rep['median_rot_err_deg'])} ° |"]
-    if rep.get("reference_median_pos_err_m") is not None:
-        L += [f"| reference block vs truth | {_fmt(rep['reference_median_pos_err_m'])} m, "
-              f"{_fmt(rep['reference_median_rot_err_deg'])} ° |"]
+    L += list(checks.get("rows", []))
     ref = rep.get("reference_block")
     if ref:
         geo = ref.get("georegistration", {})
@@ -136,12 +118,7 @@ def _markdown(rep: dict, folder: Path) -> str:
               f"| georegistration ({geo.get('used')}) | RMSE {_fmt(geo.get('rmse_inliers_m'))} m over "
               f"{geo.get('n_inliers')} inliers |",
               f"| GCP residual median / RMSE | {_fmt(geo.get('gcp_median_err_m'))} m / {_fmt(geo.get('gcp_rmse_m'))} m |"]
-    pc = rep.get("point_cloud_comparison")
-    if pc:
-        L += [f"| vertical offset from {Path(pc['cloud']).name} | {pc['vertical_offset_m']:+.3f} m (median) |",
-              f"| horizontal offset from {Path(pc['cloud']).name} | {pc['horizontal_offset_m']:.3f} m "
-              f"(dx {pc['horizontal_offset_xy_m'][0]:+.3f}, dy {pc['horizontal_offset_xy_m'][1]:+.3f}) |",
-              "", f"Method: {pc['method']}."]
+    L += list(checks.get("after_table", []))
     if ref and ref.get("georegistration", {}).get("gcp_residuals"):
         L += ["", "## GCP residuals", "", "| GCP | dx m | dy m | dz m | error m | clicks used |", "|---|---|---|---|---|---|"]
         for n, g in ref["georegistration"]["gcp_residuals"].items():
@@ -166,20 +143,21 @@ def _markdown(rep: dict, folder: Path) -> str:
     if per:
         names = sorted(per)
         short = [n.split("/")[-2] + "/" + n.split("/")[-1].split(".")[0] for n in names]
-        if "median_pos_err_m" in rep:
-            v = [per[n].get("pos_err_m", np.inf) for n in names]
-            write_text(folder / "gt_pos_err.svg", _svg_bars("position error vs truth per query photo", short, v, "m", 0.10))
-            L += ["", "![position errors](gt_pos_err.svg)"]
+        for title, key, file, limit in checks.get("plots", []):  # per-image bars from evaluation
+            v = [per[n].get(key, np.inf) for n in names]
+            write_text(folder / file, _svg_bars(title, short, v, "m", limit))
+            L += ["", f"![{title}]({file})"]
         sv = [per[n].get("sigma_pos_m", np.nan) for n in names]
         if np.any(np.isfinite(sv)):
             write_text(folder / "gt_sigma.svg", _svg_bars("BA position standard deviation per query photo", short,
                                                           [x if np.isfinite(x) else 0.0 for x in sv], "m"))
             L += ["", "![position sigma](gt_sigma.svg)"]
-        L += ["", "## Per image", "", "| image | registered | σ pos m | σ rot ° | pos err m | rot err ° | review |",
-              "|---|---|---|---|---|---|---|"]
+        cols = list(checks.get("columns", []))  # (key, header) added by evaluation
+        L += ["", "## Per image", "", "| image | registered | σ pos m | σ rot ° | " + "".join(f"{h} | " for _k, h in cols)
+              + "review |", "|---|---|---|---|" + "---|" * len(cols) + "---|"]
         for n in names:
             e = per[n]
             L.append(f"| {n} | {'yes' if e.get('registered') else 'NO'} | {_fmt(e.get('sigma_pos_m'))} | "
-                     f"{_fmt(e.get('sigma_rot_deg'))} | {_fmt(e.get('pos_err_m'))} | {_fmt(e.get('rot_err_deg'))} | "
-                     f"{e.get('review', '')} |")
+                     f"{_fmt(e.get('sigma_rot_deg'))} | " + "".join(f"{_fmt(e.get(k))} | " for k, _h in cols)
+                     + f"{e.get('review', '')} |")
     return "\n".join(L) + "\n"
