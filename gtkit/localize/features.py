@@ -11,7 +11,7 @@ descriptors stored as uint8 like COLMAP, turned into RootSIFT for matching.
 ``nn-ratio``: mutual nearest neighbours that also pass Lowe's ratio test, in RootSIFT space for
 SIFT (uint8) descriptors and on the unit vectors of float (learned) ones (:func:`unit_descriptors`).
 ``xfeat`` / ``lighterglue``: XFeat features and the LighterGlue matcher (:mod:`.learned`, optional
-extra ``gtkit[learned]``; torch is imported only when one is built).
+extra ``gtkit[learned]``; named in the registry, imported (with torch) only when one is built).
 """
 from __future__ import annotations
 
@@ -111,32 +111,31 @@ class MutualNNRatioMatcher:
         return np.stack([rows[keep], j1[keep]], axis=1).astype(int)
 
 
-def _xfeat(**kw):
-    from .learned import XFeatExtractor
-
-    return XFeatExtractor(**kw)
-
-
-def _lighterglue(**kw):
-    from .learned import LighterGlueMatcher
-
-    return LighterGlueMatcher(**kw)
+# The registry names each part by "module:class"; a module is imported only when its part is built,
+# so this module never imports the learned one (which imports Features from here) and torch loads
+# only for a learned part.
+EXTRACTORS = {"sift": "gtkit.localize.features:SiftExtractor", "xfeat": "gtkit.localize.learned:XFeatExtractor"}
+MATCHERS = {"nn-ratio": "gtkit.localize.features:MutualNNRatioMatcher",
+            "lighterglue": "gtkit.localize.learned:LighterGlueMatcher"}
 
 
-EXTRACTORS = {"sift": SiftExtractor, "xfeat": _xfeat}
-MATCHERS = {"nn-ratio": MutualNNRatioMatcher, "lighterglue": _lighterglue}
+def _load(spec: str):
+    import importlib
+
+    module, _, name = spec.partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def make_extractor(name: str, **kw):
     if name not in EXTRACTORS:
         raise GtkitError(f"unknown feature extractor {name!r} (available: {', '.join(EXTRACTORS)})")
-    return EXTRACTORS[name](**kw)
+    return _load(EXTRACTORS[name])(**kw)
 
 
 def make_matcher(name: str, **kw):
     if name not in MATCHERS:
         raise GtkitError(f"unknown matcher {name!r} (available: {', '.join(MATCHERS)})")
-    return MATCHERS[name](**kw)
+    return _load(MATCHERS[name])(**kw)
 
 
 # --- on-disk feature store (one HDF5 group per image, like hloc) ---------------------------------

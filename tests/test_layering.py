@@ -1,0 +1,46 @@
+"""Package layering, read from the source: estimating stages never import evaluation (which reads
+truth/), the library never imports Qt, and localize/features.py names the learned parts only by
+module path (learned.py imports features.py, never the other way round)."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+GTKIT = Path(__file__).resolve().parents[1] / "gtkit"
+
+
+def _imports(path: Path) -> set[str]:
+    """Absolute module names imported by a file (relative imports resolved)."""
+    pkg = path.relative_to(GTKIT.parent).with_suffix("").parts[:-1]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = list(pkg[:len(pkg) - node.level + 1]) if node.level else []
+            mod = ".".join(base + ([node.module] if node.module else []))
+            out.add(mod)
+            out |= {f"{mod}.{a.name}" for a in node.names}
+    return out
+
+
+def test_estimating_packages_never_import_evaluation():
+    for pkg in ("sfm", "localize", "export", "track", "render"):
+        for f in sorted((GTKIT / pkg).rglob("*.py")):
+            bad = {m for m in _imports(f) if m.startswith("gtkit.evaluate")}
+            assert not bad, f"{f.relative_to(GTKIT.parent)} imports {sorted(bad)}"
+
+
+def test_library_never_imports_qt():
+    for f in sorted(GTKIT.rglob("*.py")):
+        bad = {m for m in _imports(f) if m.split(".")[0] in ("PySide6", "PyQt5", "PyQt6", "pyvistaqt")}
+        assert not bad, f"{f.relative_to(GTKIT.parent)} imports {sorted(bad)}"
+
+
+def test_features_and_learned_do_not_import_each_other():
+    feats = _imports(GTKIT / "localize" / "features.py")
+    assert not any(m.startswith("gtkit.localize.learned") for m in feats), feats
+    assert "gtkit.localize.features" in _imports(GTKIT / "localize" / "learned.py")
+    from gtkit.localize.features import SiftExtractor, make_extractor, make_matcher
+
+    assert isinstance(make_extractor("sift"), SiftExtractor) and make_matcher("nn-ratio") is not None
