@@ -2,7 +2,9 @@
 
 ``gcp_list.txt``: the first line names the CRS (``EPSG:32650``, a PROJ string, or ODM's
 ``WGS84 UTM 50N``); every other line is ``geo_x geo_y geo_z px py image [name] [...]``, one
-click of a ground control point in one photo. ``px py`` are read in gtkit's pixel convention
+click of a ground control point in one photo. A point whose line carries ``check`` (or
+``checkpoint``, ``chk``) after the name is a check point: left out of georegistration and
+reported apart. ``px py`` are read in gtkit's pixel convention
 (COLMAP: top-left pixel centre at (0.5, 0.5), see :mod:`gtkit.conventions`). Lines sharing a
 name (or, without names, the same coordinates) are clicks of one GCP.
 
@@ -50,6 +52,7 @@ class GCP:
     name: str
     xyz: np.ndarray  # local world frame
     clicks: list[GCPClick] = field(default_factory=list)
+    check: bool = False  # a check point: measured, never fitted
 
 
 def _data_lines(path: Path):
@@ -88,7 +91,12 @@ def read_gcp_list(path: str | Path, frame: GeoFrame) -> list[GCP]:
         elif np.linalg.norm(g.xyz - local) > 1e-3:
             raise GtkitError(f"line {n}: GCP {name!r} has different coordinates than on an earlier line", path)
         g.clicks.append(GCPClick(f[5], px, py))
+        if any(x.lower() in CHECK_WORDS for x in f[7:]):
+            g.check = True
     return list(gcps.values())
+
+
+CHECK_WORDS = ("check", "checkpoint", "chk")
 
 
 @dataclass

@@ -23,10 +23,12 @@ from ..io.odm import read_gcp_list, read_geo_txt
 from ..io.poses import read_intrinsics, write_intrinsics, write_poses
 from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
 from . import quiet_colmap
+from ..progress import progress_bar
 from .database import (CameraGroup, FeatureSettings, MatchSettings, build_database, failure_reason,
-                       image_diagnostics, match)
+                       image_diagnostics, match_pairs, read_descriptors)
 from .geometry import RegistrationError, model_cameras, model_poses
-from .georegister import GeoregisterSettings, georegister
+from .georegister import GeoregisterSettings, check_gcp_clicks, georegister
+from .pairs import block_pairs
 
 log = logging.getLogger(__name__)
 
@@ -40,13 +42,15 @@ class SfmSettings:
     features: FeatureSettings = field(default_factory=FeatureSettings)
     matching: MatchSettings = field(default_factory=MatchSettings)
     georegister: GeoregisterSettings = field(default_factory=GeoregisterSettings)
-    # auto: cameras.txt calibrations stay fixed; cameras without one (EXIF focal) get their distortion
-    # refined but keep the EXIF focal length (a flat, nadir-only block cannot tell focal length from
-    # flying height: the focal drifts and the ground moves up or down); yes: refine all; no: none
+    # auto: cameras.txt calibrations stay fixed; cameras with an EXIF focal get focal + distortion
+    # refined, held by GPS pose priors in the BA when the block has GPS (a flat nadir block cannot
+    # tell focal length from flying height); cameras with no focal at all are self-calibrated
+    # (focal, distortion, principal point); yes: refine all; no: none (see intrinsics_policy)
     refine_intrinsics: str = "auto"
+    gps_priors_in_ba: bool = True     # GPS positions as weak pose priors in the mapper's BA (refined cameras only)
     query_pattern: str = "*_W.*"      # which photos of a query sequence form its block
     pair_by_footprint: bool = True    # spatial pairs by where photos look (gimbal), not where they were taken
-    gps_prior_sigma_m: float = 5.0    # written with the CARTESIAN pose priors (used only for pairing)
+    gps_prior_sigma_m: float = 5.0    # sigma of the CARTESIAN pose priors (geo.txt accuracy where stated)
     init_min_tri_angle_deg: float = 4.0  # mapper's initial pair (COLMAP: 16; short UAV baselines need less)
     min_tri_angle_deg: float = 1.0       # triangulation/filtering (COLMAP: 1.5)
     num_threads: int = 2
@@ -61,18 +65,26 @@ def list_images(folder: Path, root: Path, pattern: str = "*") -> list[str]:
 
 def gps_positions(project: Project, names: list[str]) -> dict[str, np.ndarray]:
     """Local-frame camera positions: from geo.txt where present, else EXIF GPS + DJI altitude."""
+    return gps_positions_and_accuracy(project, names)[0]
+
+
+def gps_positions_and_accuracy(project: Project, names: list[str]) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Camera positions (geo.txt first, else EXIF GPS + DJI altitude) and, where geo.txt states
+    one, each position's accuracy (metres, the larger of horizontal and vertical)."""
     P = project.paths
     geo = read_geo_txt(P.geo_txt, project.frame) if P.geo_txt.is_file() else {}
-    out = {}
+    out, acc = {}, {}
     for n in names:
         g = geo.get(n) or geo.get(Path(n).name)
         if g is not None and np.all(np.isfinite(g.xyz)):
             out[n] = g.xyz
+            if g.accuracy and max(g.accuracy) > 0:
+                acc[n] = float(max(g.accuracy))
             continue
         m = read_photo_meta(P.images / n, require=())
         if m.has_gps and m.altitude is not None:
             out[n] = project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
-    return out
+    return out, acc
 
 
 def pairing_positions(project: Project, names: list[str], centres: dict[str, np.ndarray],
@@ -117,25 +129,102 @@ def _inputs(project: Project, names: list[str]) -> dict:
             "geo_txt": file_fingerprint(P.geo_txt), "crs": [project.frame.crs_spec, list(project.frame.origin)]}
 
 
-def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, refine: bool,
-         refine_focal: bool) -> pycolmap.Reconstruction | None:
+def _calibrated_camera_ids(db: Path, groups: list[CameraGroup]) -> tuple[set[int], set[int]]:
+    """(camera ids from cameras.txt, camera ids with neither cameras.txt nor an EXIF focal)."""
+    calibrated, no_prior = set(), set()
+    with pycolmap.Database.open(db) as d:
+        by_name = {im.name: im.camera_id for im in d.read_all_images()}
+        cams = {c.camera_id: c for c in d.read_all_cameras()}
+    for g in groups:
+        ids = {by_name[n] for n in g.names if n in by_name}
+        if g.camera is not None:
+            calibrated |= ids
+        else:
+            no_prior |= {i for i in ids if not cams[i].has_prior_focal_length}
+    return calibrated, no_prior
+
+
+def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: dict, n_images: int,
+         label: str) -> list[pycolmap.Reconstruction]:
+    """Incremental mapping; every model found, largest first. Progress: photos registered so far."""
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = settings.num_threads
     opts.random_seed = 0
-    opts.ba_refine_focal_length = refine_focal
-    opts.ba_refine_extra_params = refine
+    opts.ba_refine_focal_length = policy["refine_focal"]
+    opts.ba_refine_extra_params = policy["refine_distortion"]
     opts.ba_refine_principal_point = False
-    opts.mapper.abs_pose_refine_focal_length = refine_focal
-    opts.mapper.abs_pose_refine_extra_params = refine
+    opts.mapper.abs_pose_refine_focal_length = policy["refine_focal"]
+    opts.mapper.abs_pose_refine_extra_params = policy["refine_distortion"]
+    if policy["constant_cameras"]:
+        opts.constant_cameras = set(policy["constant_cameras"])
+    if policy["gps_priors_in_ba"]:
+        opts.use_prior_position = True
+        opts.use_robust_loss_on_prior_position = True
     opts.min_model_size = 3
     opts.mapper.init_min_tri_angle = settings.init_min_tri_angle_deg
     opts.mapper.filter_min_tri_angle = settings.min_tri_angle_deg
     opts.triangulation.min_angle = settings.min_tri_angle_deg
     out.mkdir(parents=True, exist_ok=True)
-    models = pycolmap.incremental_mapping(db, image_root, out, options=opts)
-    if not models:
-        return None
-    return max(models.values(), key=lambda r: r.num_reg_images())
+    bar = progress_bar(n_images, f"{label}: photos registered")
+    models = pycolmap.incremental_mapping(db, image_root, out, options=opts,
+                                          initial_image_pair_callback=lambda: bar.update(2),
+                                          next_image_callback=lambda: bar.update(1))
+    bar.close()
+    return sorted(models.values(), key=lambda r: -r.num_reg_images())
+
+
+def _final_bundle_adjustment(rec: pycolmap.Reconstruction, policy: dict) -> None:
+    """Self-calibration: one global BA that also refines the principal point of cameras that had no
+    calibration prior at all (focal and distortion are refined by the mapper)."""
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = True
+    opts.refine_principal_point = True
+    opts.refine_extra_params = True
+    config = pycolmap.BundleAdjustmentConfig()
+    for iid in rec.reg_image_ids():
+        config.add_image(iid)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+    for cid in rec.cameras:
+        if cid not in policy["self_calibrate"]:
+            config.set_constant_cam_intrinsics(cid)
+    pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
+
+
+def merge_models(models: list[pycolmap.Reconstruction]) -> pycolmap.Reconstruction:
+    """Models already in one frame (georegistered) joined into the first: cameras, posed images,
+    3D points with their tracks. Cameras shared by two models keep the first model's intrinsics."""
+    base = models[0]
+    for m in models[1:]:
+        for cid, cam in m.cameras.items():
+            if not base.exists_camera(cid):
+                base.add_camera_with_trivial_rig(cam)
+        for iid, im in m.images.items():
+            if not im.has_pose or base.exists_image(iid):
+                continue
+            kp = np.array([p.xy for p in im.points2D]).reshape(-1, 2)
+            base.add_image_with_trivial_frame(pycolmap.Image(name=im.name, keypoints=kp, camera_id=im.camera_id,
+                                                             image_id=iid), im.cam_from_world())
+        for p in m.points3D.values():
+            track = pycolmap.Track()
+            for el in p.track.elements:
+                track.add_element(el.image_id, el.point2D_idx)
+            base.add_point3D(p.xyz, track, p.color)
+    return base
+
+
+def intrinsics_policy(settings: SfmSettings, calibrated: set[int], no_prior: set[int], all_ids: set[int],
+                      n_gps: int) -> dict:
+    """What the bundle adjustments refine. ``auto``: cameras.txt calibrations stay fixed; cameras
+    with an EXIF focal get focal + distortion refined, held by GPS priors in the BA when the block
+    has GPS (a flat nadir block cannot then trade focal length for flying height); cameras with no
+    focal prior at all are self-calibrated (focal, distortion, then principal point in a final BA).
+    ``yes``: refine every camera (no principal point); ``no``: refine none."""
+    mode = settings.refine_intrinsics
+    refined = set() if mode == "no" else (set(all_ids) if mode == "yes" else set(all_ids) - calibrated)
+    return {"mode": mode, "refine_focal": bool(refined), "refine_distortion": bool(refined),
+            "constant_cameras": set(all_ids) - refined,
+            "gps_priors_in_ba": bool(refined) and n_gps >= 3 and settings.gps_priors_in_ba,
+            "self_calibrate": (no_prior & refined) if mode == "auto" else set()}
 
 
 @dataclass
@@ -144,67 +233,144 @@ class BlockResult:
     summary: dict
 
 
-def build_block(project: Project, names: list[str], out: Path, pairings: list[str], settings: SfmSettings,
+def _step(label: str, what: str, t0: float) -> float:
+    t = time.time()
+    log.info("%s: %s in %.1f s", label, what, t - t0)
+    return t
+
+
+def build_block(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings,
                 georegister_block: bool, label: str) -> BlockResult:
-    """Features, pairs, mapping, optional georegistration; writes the block's files to ``out``."""
+    """Features, pairs, mapping, optional georegistration; writes the block's files to ``out``.
+    ``kind``: 'reference' or 'sequence' (adds sequential pairs)."""
     P = project.paths
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    positions = gps_positions(project, names)
+    positions, accuracy = gps_positions_and_accuracy(project, names)
     look = pairing_positions(project, names, positions) if settings.pair_by_footprint else positions
-    groups = camera_groups(project, names, look)
+    groups = camera_groups(project, names, positions)
     db = out / "database.db"
+    m = settings.matching
     # features + matches are reused when nothing that made them changed (mapping settings may)
-    db_key = settings_key({"features": settings_dict(settings.features), "matching": settings_dict(settings.matching),
-                           "pairings": pairings, "sigma": settings.gps_prior_sigma_m,
+    db_key = settings_key({"features": settings_dict(settings.features), "matching": settings_dict(m), "kind": kind,
+                           "sigma": settings.gps_prior_sigma_m, "accuracy": accuracy, "pairs_version": 2,
+                           "look": {n: [round(float(v), 3) for v in x] for n, x in look.items()},
                            "images": {n: file_fingerprint(P.images / n) for n in names},
                            "groups": [[g.names, g.camera.to_line() if g.camera else None,
                                        {n: [round(float(v), 3) for v in x] for n, x in g.positions.items()}]
                                       for g in groups]})
     key_file = out / "database.key"
     reuse = db.is_file() and key_file.is_file() and key_file.read_text().strip() == db_key
+    pairs_used = ["reused"]
+    n_pairs = None
     if not reuse:
         key_file.unlink(missing_ok=True)
-        build_database(db, P.images, groups, settings.features, settings.gps_prior_sigma_m)
-    t_feat = time.time()
+        bar = progress_bar(len(names), f"{label}: features")
+        build_database(db, P.images, groups, settings.features, settings.gps_prior_sigma_m,
+                       progress=bar.update, accuracy=accuracy)
+        bar.close()
+    t_feat = _step(label, f"features of {len(names)} photos", t0)
     if not reuse:
-        for p in pairings:
-            if p == "spatial" and len(positions) < 2:
-                continue
-            match(db, p, settings.matching)
+        pairs, pairs_used = block_pairs(
+            names, look, lambda: read_descriptors(db), kind=kind, exhaustive_max=m.exhaustive_max_images,
+            exhaustive_max_without_gps=m.exhaustive_max_without_gps, spatial_k=m.spatial_neighbors,
+            spatial_max_m=m.spatial_max_distance_m, retrieval_k=m.retrieval_neighbors,
+            retrieval_always=m.retrieval_always, sequential_overlap=m.sequential_overlap if kind == "sequence" else 0)
+        n_pairs = len(pairs)
+        bar = progress_bar(len(pairs), f"{label}: pairs matched ({'+'.join(pairs_used)})")
+        match_pairs(db, pairs, m, out, progress=bar.update)
+        bar.close()
         write_text(key_file, db_key + "\n")
-    t_match = time.time()
-    refine = {"yes": True, "no": False}.get(settings.refine_intrinsics, any(g.camera is None for g in groups))
-    refine_focal = settings.refine_intrinsics == "yes"
-    rec = _map(db, P.images, out / "mapper", settings, refine, refine_focal)
-    t_map = time.time()
-    diag = image_diagnostics(db)
-    registered = {im.name for im in rec.images.values() if im.has_pose} if rec else set()
-    unregistered = {n: failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}),
-                                      settings.matching.min_num_inliers) for n in names if n not in registered}
-    summary = {"block": label, "reused_database": reuse, "n_images": len(names), "n_registered": len(registered),
-               "unregistered": unregistered, "pairings": pairings, "refined_distortion": refine, "refined_focal": refine_focal,
-               "n_cameras": len(groups), "n_gps": len(positions)}
-    if rec is None:
+        write_json(out / "pairs.json", {"strategies": pairs_used, "n_pairs": n_pairs})
+    elif (out / "pairs.json").is_file():
+        import json
+        pj = json.loads((out / "pairs.json").read_text())
+        pairs_used, n_pairs = pj["strategies"], pj["n_pairs"]
+    t_match = _step(label, f"matching ({n_pairs} pairs)", t_feat)
+    calibrated, no_prior = _calibrated_camera_ids(db, groups)
+    with pycolmap.Database.open(db) as d:
+        all_ids = {c.camera_id for c in d.read_all_cameras()}
+    policy = intrinsics_policy(settings, calibrated, no_prior, all_ids, len(positions))
+    models = _map(db, P.images, out / "mapper", settings, policy, len(names), label)
+    t_map = _step(label, f"mapping ({sum(r.num_reg_images() for r in models)} photos in {len(models)} models)", t_match)
+    summary = {"block": label, "reused_database": reuse, "n_images": len(names), "pairings": pairs_used,
+               "n_pairs": n_pairs, "n_cameras": len(groups), "n_gps": len(positions),
+               "intrinsics_policy": {"mode": policy["mode"], "refined_focal": policy["refine_focal"],
+                                     "refined_distortion": policy["refine_distortion"],
+                                     "refined_principal_point": bool(policy["self_calibrate"]),
+                                     "gps_priors_in_ba": policy["gps_priors_in_ba"],
+                                     "fixed_cameras": sorted(policy["constant_cameras"]),
+                                     "self_calibrated_cameras": sorted(policy["self_calibrate"])},
+               "refined_distortion": policy["refine_distortion"], "refined_focal": policy["refine_focal"]}
+    if not models:
+        diag = image_diagnostics(db)
+        summary.update(n_registered=0, n_models=0, models=[], unregistered={
+            n: failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}), m.min_num_inliers)
+            for n in names})
         summary["error"] = "the mapper reconstructed nothing (no initial pair found)"
         write_json(out / "block.json", summary)
         return BlockResult(None, summary)
-    summary.update({"n_points3D": rec.num_points3D(), "mean_reproj_px": float(rec.compute_mean_reprojection_error())})
+    if policy["self_calibrate"]:
+        for r in models:
+            _final_bundle_adjustment(r, policy)
+    models_info = [{"model": k, "n_registered": r.num_reg_images(), "n_points3D": r.num_points3D(),
+                    "photos": sorted(im.name for im in r.images.values() if im.has_pose)} for k, r in enumerate(models)]
+    kept = [0]
     if georegister_block:
         gcps = read_gcp_list(P.gcp_list, project.frame) if P.gcp_list.is_file() else []
         for g in gcps:  # ODM names photos by file name; gtkit by path under images/
             for c in g.clicks:
                 if "/" not in c.image:
                     c.image = next((n for n in names if Path(n).name == c.image), c.image)
-        try:
-            summary["georegistration"] = georegister(rec, positions, gcps, settings.georegister)
+        if gcps and kind == "reference":
+            summary["gcp_clicks_outside_block"] = check_gcp_clicks(gcps, names)
+        geo_models = []
+        for k, r in enumerate(models):
+            try:
+                g = georegister(r, positions, gcps, settings.georegister, accuracy)
+                models_info[k]["georegistration"] = {kk: g[kk] for kk in ("n_inliers", "rmse_m", "gcp_median_err_m")}
+                geo_models.append((k, g))
+            except RegistrationError as e:
+                models_info[k]["georegistration"] = {"error": str(e)}
+        if geo_models:
+            kept = [k for k, _ in geo_models]
+            summary["georegistration"] = geo_models[0][1]
             summary["frame"] = "project world frame"
-        except RegistrationError as e:
-            summary["georegistration"] = {"error": str(e)}
+        else:
+            summary["georegistration"] = {"error": models_info[0]["georegistration"]["error"]}
             summary["frame"] = "arbitrary SfM frame (georegistration failed)"
     else:
         summary["frame"] = "arbitrary SfM frame"
+    rec = merge_models([models[k] for k in kept]) if len(kept) > 1 else models[kept[0]]
+    if len(kept) > 1 and georegister_block and P.gcp_list.is_file():
+        # GCP residuals of the merged block (each model was fitted on its own)
+        summary["georegistration"]["merged_models"] = kept
+    for k, info in enumerate(models_info):
+        info["kept"] = k in kept
+        if k not in kept:
+            info["reason"] = ("not placed in the world: " + info.get("georegistration", {}).get("error", "")
+                              if georegister_block else "not the largest model of an unregistered block")
     t_geo = time.time()
+    diag = image_diagnostics(db)
+    registered = {im.name for im in rec.images.values() if im.has_pose}
+    in_other = {n: info for info in models_info if not info["kept"] for n in info["photos"]}
+    unregistered = {}
+    for n in names:
+        if n in registered:
+            continue
+        if n in in_other:
+            i = in_other[n]
+            unregistered[n] = f"in model {i['model']} ({i['n_registered']} photos), {i['reason']}"
+        else:
+            unregistered[n] = failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}),
+                                             m.min_num_inliers)
+    summary.update({"n_registered": len(registered), "unregistered": unregistered, "n_models": len(models),
+                    "models": models_info, "n_points3D": rec.num_points3D(),
+                    "mean_reproj_px": float(rec.compute_mean_reprojection_error()),
+                    "intrinsics": {str(cid): {"model": c.model.name, "width": c.width, "height": c.height,
+                                              "params": [float(v) for v in c.params],
+                                              "fixed": cid in policy["constant_cameras"]}
+                                   for cid, c in rec.cameras.items()}})
     (out / "model").mkdir(exist_ok=True)
     rec.write(out / "model")
     write_poses(out / "poses.txt", model_poses(rec), header=f"{label}: {summary['frame']}")
@@ -229,8 +395,7 @@ def run_reference(project: Project | str | Path, settings: SfmSettings | None = 
     if not force and stage_done(out, settings, inputs):
         import json
         return json.loads((out / "block.json").read_text())
-    pairings = ["exhaustive"] if len(names) <= settings.matching.exhaustive_max_images else ["spatial"]
-    res = build_block(project, names, out, pairings, settings, georegister_block=True, label="reference block")
+    res = build_block(project, names, out, "reference", settings, georegister_block=True, label="reference block")
     if res.rec is None:
         raise GtkitError(res.summary["error"], out)
     if "error" in res.summary.get("georegistration", {}):
@@ -265,8 +430,7 @@ def run_queries(project: Project | str | Path, settings: SfmSettings | None = No
             result[seq] = json.loads((out / "block.json").read_text())
             continue
         log.info("query sequence %s: %d photos", seq, len(names))
-        pairings = ["sequential", "spatial"] if len(names) > settings.matching.exhaustive_max_images else ["exhaustive"]
-        res = build_block(project, names, out, pairings, settings, georegister_block=True, label=f"query sequence {seq}")
+        res = build_block(project, names, out, "sequence", settings, georegister_block=True, label=f"query sequence {seq}")
         result[seq] = res.summary
         if res.rec is not None:
             mark_stage_done(out, settings, inputs, n_registered=res.summary["n_registered"])

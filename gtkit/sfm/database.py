@@ -27,8 +27,12 @@ class FeatureSettings:
 @dataclass
 class MatchSettings:
     exhaustive_max_images: int = 25     # exhaustive pairs up to this many images, spatial above
+    exhaustive_max_without_gps: int = 80  # blocks where photos lack GPS: exhaustive up to this many
     spatial_neighbors: int = 20         # spatial pairing: nearest neighbours per image
     spatial_max_distance_m: float = 250.0
+    retrieval_neighbors: int = 20       # retrieval pairing (photos without GPS): most similar photos per image
+    retrieval_always: bool = False      # add retrieval pairs even when every photo has a position
+    chunk_pairs: int = 300              # pairs matched per call (progress granularity)
     sequential_overlap: int = 8         # query sequences: consecutive neighbours matched
     min_num_inliers: int = 15
     num_threads: int = 2
@@ -44,8 +48,10 @@ class CameraGroup:
 
 
 def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], settings: FeatureSettings,
-                   prior_sigma_m: float = 5.0) -> dict[str, int]:
+                   prior_sigma_m: float = 5.0, progress=None, accuracy: dict[str, float] | None = None) -> dict[str, int]:
     """Create ``db_path`` fresh: one camera per group, SIFT features, CARTESIAN pose priors.
+    ``progress(n)`` is called as each chunk of photos is extracted; ``accuracy``: {name: metres}, a
+    photo's stated position accuracy (its prior's sigma; default ``prior_sigma_m``).
     Returns {image name: image_id}."""
     db_path = Path(db_path)
     db_path.unlink(missing_ok=True)
@@ -62,13 +68,21 @@ def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], s
                 ro.existing_camera_id = db.write_camera(cam)
         else:
             ro.camera_model = "SIMPLE_RADIAL"
-        pycolmap.extract_features(db_path, image_root, image_names=list(g.names),
-                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
-                                  extraction_options=ext, device=pycolmap.Device.cpu)
+        for k in range(0, len(g.names), EXTRACT_CHUNK):
+            chunk = list(g.names[k:k + EXTRACT_CHUNK])
+            if k:  # later chunks join the group's camera made by the first one
+                with pycolmap.Database.open(db_path) as db:
+                    first = next(im for im in db.read_all_images() if im.name == g.names[0])
+                ro.existing_camera_id = first.camera_id
+            pycolmap.extract_features(db_path, image_root, image_names=chunk,
+                                      camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
+                                      extraction_options=ext, device=pycolmap.Device.cpu)
+            if progress:
+                progress(len(chunk))
     ids = {}
     with pycolmap.Database.open(db_path) as db:
         by_name = {im.name: im for im in db.read_all_images()}
-        cov = (np.eye(3) * prior_sigma_m ** 2)
+        accuracy = accuracy or {}
         # pycolmap writes WGS84 priors from EXIF itself; replace them by CARTESIAN local ones
         existing = {pp.corr_data_id.id: pp for pp in db.read_all_pose_priors()}
         for g in groups:
@@ -81,7 +95,7 @@ def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], s
                     prior = pycolmap.PosePrior(corr_data_id=pycolmap.data_t(
                         pycolmap.sensor_t(pycolmap.SensorType.CAMERA, im.camera_id), im.image_id))
                 prior.position = np.asarray(xyz, float)
-                prior.position_covariance = cov
+                prior.position_covariance = np.eye(3) * accuracy.get(name, prior_sigma_m) ** 2
                 prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
                 if im.image_id in existing:
                     db.update_pose_prior(prior)
@@ -89,6 +103,37 @@ def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], s
                     db.write_pose_prior(prior)
         ids = {n: im.image_id for n, im in by_name.items()}
     return ids
+
+
+EXTRACT_CHUNK = 8  # photos per extraction call (progress granularity)
+
+
+def read_descriptors(db_path: Path) -> dict[str, np.ndarray]:
+    """{image name: uint8 SIFT descriptors} of every image in the database."""
+    with pycolmap.Database.open(db_path) as db:
+        return {im.name: np.asarray(db.read_descriptors(im.image_id).data) for im in db.read_all_images()}
+
+
+def match_pairs(db_path: Path, pairs: list[tuple[str, str]], settings: MatchSettings, work_dir: Path,
+                progress=None) -> None:
+    """Match and verify the given name pairs, in chunks (``progress(n)`` after each)."""
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.num_threads = settings.num_threads
+    vo = pycolmap.TwoViewGeometryOptions()
+    vo.min_num_inliers = settings.min_num_inliers
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    pairs_file = work_dir / "pairs_chunk.txt"
+    for k in range(0, len(pairs), settings.chunk_pairs):
+        chunk = pairs[k:k + settings.chunk_pairs]
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in chunk))
+        po = pycolmap.ImportedPairingOptions()
+        po.match_list_path = pairs_file
+        pycolmap.match_image_pairs(db_path, matching_options=mo, pairing_options=po,
+                                   verification_options=vo, device=pycolmap.Device.cpu)
+        if progress:
+            progress(len(chunk))
+    pairs_file.unlink(missing_ok=True)
 
 
 def match(db_path: Path, pairing: str, settings: MatchSettings) -> None:

@@ -144,32 +144,32 @@ class Sim3Fit:
     inliers: np.ndarray        # bool
     residuals_m: np.ndarray    # |sim(src) - tgt| per point
     rmse_inliers_m: float
+    thresholds_m: np.ndarray | None = None  # inlier threshold per point, as finally used
 
 
-def robust_sim3(src: np.ndarray, tgt: np.ndarray, max_error_m: float, what: str = "points") -> Sim3Fit:
-    """LO-RANSAC Sim(3) tgt_from_src; raises :class:`RegistrationError` with the reason."""
+def robust_sim3(src: np.ndarray, tgt: np.ndarray, max_error_m, what: str = "points", *,
+                weights=None, adaptive=None) -> Sim3Fit:
+    """LO-RANSAC Sim(3) tgt_from_src (gtkit.sfm.similarity: Umeyama, no coplanarity failure);
+    ``max_error_m`` a threshold or one per point. Raises :class:`RegistrationError` with the reason."""
+    from .similarity import collinearity, lo_ransac_similarity
+
     src, tgt = np.asarray(src, float).reshape(-1, 3), np.asarray(tgt, float).reshape(-1, 3)
     if len(src) < 3:
         raise RegistrationError(f"only {len(src)} usable {what} (3 or more needed)")
-    sv = np.linalg.svd(src - src.mean(0), compute_uv=False)
-    if sv[0] <= 0 or sv[1] / sv[0] < 1e-3:
+    if collinearity(src) < 1e-3 or collinearity(tgt) < 1e-3:
         raise RegistrationError(f"the {len(src)} usable {what} are collinear (or coincide): "
                                 "a similarity transform is undetermined")
-    opts = pycolmap.RANSACOptions()
-    opts.max_error = float(max_error_m)
-    opts.random_seed = 0
-    opts.min_num_trials = 200
-    res = pycolmap.estimate_sim3d_robust(src, tgt, opts)
-    if res is None:
+    th = np.broadcast_to(np.asarray(max_error_m, float), (len(src),)).copy()
+    fit = lo_ransac_similarity(src, tgt, th, weights=weights,
+                               adaptive=None if adaptive is None else np.asarray(adaptive, bool))
+    if fit is None:
         raise RegistrationError(f"Sim(3) RANSAC found no consistent transform for {len(src)} {what}")
-    sim = res["tgt_from_src"] if isinstance(res, dict) else res
-    inl = np.asarray(res["inlier_mask"], bool) if isinstance(res, dict) else None
-    r = np.linalg.norm(sim3_apply(sim, src) - tgt, axis=1)
-    if inl is None:
-        inl = r <= max_error_m
+    inl = fit.inliers
     if inl.sum() < 3:
-        raise RegistrationError(f"Sim(3) has only {int(inl.sum())} inliers among {len(src)} {what}")
-    isv = np.linalg.svd(src[inl] - src[inl].mean(0), compute_uv=False)
-    if isv[1] / isv[0] < 1e-3:
+        raise RegistrationError(f"Sim(3) has only {int(inl.sum())} inliers among {len(src)} {what} "
+                                f"(threshold {float(np.median(fit.thresholds)):.2f} m)")
+    if collinearity(src[inl]) < 1e-3:
         raise RegistrationError(f"the Sim(3) inliers among the {what} are collinear")
-    return Sim3Fit(sim, inl, r, float(np.sqrt(np.mean(r[inl] ** 2))))
+    sim = pycolmap.Sim3d(fit.sim.scale, pycolmap.Rotation3d(fit.sim.R), fit.sim.t)
+    r = fit.residuals
+    return Sim3Fit(sim, inl, r, float(np.sqrt(np.mean(r[inl] ** 2))), fit.thresholds)

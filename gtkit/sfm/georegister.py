@@ -1,9 +1,14 @@
 """Georegister a block: robust Sim(3) from SfM camera centres to GPS centres (and/or from
-triangulated GCPs to their surveyed coordinates), then GCP residuals in metres."""
+triangulated GCPs to their surveyed coordinates), then GCP and check-point residuals in metres.
+
+Thresholds come from the data's stated accuracy where it has one (geo.txt accuracy columns, the
+``gcp_accuracy_m`` setting), else GPS uses ``gps_inlier_m`` and GCPs their own scatter (LO-RANSAC
+with an adaptive threshold: metre-grade GCPs are kept and their residuals reported).
+Check points (``check`` in gcp_list.txt, or named in ``checkpoints``) never enter the fit."""
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pycolmap
@@ -11,6 +16,7 @@ import pycolmap
 from ..io.odm import GCP
 from .geometry import (RegistrationError, Sim3Fit, model_cameras, model_poses, robust_sim3, sim3_apply,
                        triangulate_clicks)
+from .similarity import collinearity
 
 log = logging.getLogger(__name__)
 
@@ -18,8 +24,11 @@ log = logging.getLogger(__name__)
 @dataclass
 class GeoregisterSettings:
     use: str = "gps+gcp"        # gps | gcp | gps+gcp: what the Sim(3) is fitted to
-    gps_inlier_m: float = 2.0   # RANSAC threshold on camera centres (RTK: small; consumer GPS: 3-5 m)
+    gps_inlier_m: float = 2.0   # threshold on camera centres without a stated accuracy (RTK: small; consumer GPS: 3-5 m)
+    gcp_accuracy_m: float | None = None  # the GCPs' stated accuracy (1 sigma); None: from their own scatter
+    gcp_max_inlier_m: float = 5.0        # GCPs of unknown accuracy farther off than this are outliers
     gcp_max_px: float = 4.0     # clicks of a GCP farther than this from the triangulated point are dropped
+    checkpoints: list[str] = field(default_factory=list)  # GCP names used only as check points
 
 
 def triangulate_gcps(rec: pycolmap.Reconstruction, gcps: list[GCP], max_px: float) -> dict[str, dict]:
@@ -36,45 +45,95 @@ def triangulate_gcps(rec: pycolmap.Reconstruction, gcps: list[GCP], max_px: floa
     return out
 
 
+def check_gcp_clicks(gcps: list[GCP], block_names: list[str]) -> dict[str, list[str]]:
+    """{GCP name: photos it is clicked in that are not photos of this block}."""
+    have = set(block_names)
+    out = {}
+    for g in gcps:
+        missing = sorted({c.image for c in g.clicks if c.image not in have})
+        if missing:
+            out[g.name] = missing
+    return out
+
+
+def _not_usable(gcp_sfm: dict, names: list[str]) -> str:
+    return "; ".join(f"{n}: {gcp_sfm[n]['reason'] or 'fewer than 2 clicks in registered photos'} "
+                     f"({gcp_sfm[n]['clicks_in_model']} of {gcp_sfm[n]['clicks_total']} clicks in registered photos)"
+                     for n in names)
+
+
 def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: list[GCP],
-                settings: GeoregisterSettings) -> dict:
-    """Transform ``rec`` in place into the project's local world frame; returns a report dict."""
+                settings: GeoregisterSettings, gps_accuracy: dict[str, float] | None = None) -> dict:
+    """Transform ``rec`` in place into the project's local world frame; returns a report dict.
+    ``gps_accuracy``: {photo: stated 1-sigma accuracy in metres} (geo.txt), used as its threshold."""
     poses = model_poses(rec)
-    src, tgt, kinds, names = [], [], [], []
+    gps_accuracy = gps_accuracy or {}
+    checks = {g.name for g in gcps if g.check} | set(settings.checkpoints)
+    src, tgt, kinds, names, th, adaptive, w = [], [], [], [], [], [], []
     if "gps" in settings.use:
         for n, p in poses.items():
             if n in gps and np.all(np.isfinite(gps[n])):
+                acc = gps_accuracy.get(n)
                 src.append(p.center), tgt.append(gps[n]), kinds.append("gps"), names.append(n)
+                th.append(3.0 * acc if acc else settings.gps_inlier_m), adaptive.append(False)
+                w.append(1.0 / (acc or settings.gps_inlier_m / 3.0) ** 2)
     gcp_sfm = triangulate_gcps(rec, gcps, settings.gcp_max_px) if gcps else {}
+    control = [g for g in gcps if g.name not in checks]
+    usable = [g for g in control if gcp_sfm[g.name]["xyz"] is not None]
     if "gcp" in settings.use:
-        for g in gcps:
-            if gcp_sfm[g.name]["xyz"] is not None:
-                src.append(gcp_sfm[g.name]["xyz"]), tgt.append(g.xyz), kinds.append("gcp"), names.append(g.name)
+        for g in usable:
+            src.append(gcp_sfm[g.name]["xyz"]), tgt.append(g.xyz), kinds.append("gcp"), names.append(g.name)
+            acc = settings.gcp_accuracy_m
+            th.append(3.0 * acc if acc else settings.gcp_max_inlier_m), adaptive.append(acc is None)
+            w.append(1.0 / (acc or 0.05) ** 2)
+    n_gps = kinds.count("gps")
+    if n_gps < 3 and "gcp" in settings.use and control:
+        # the GCPs carry the georegistration: say exactly which cannot be used and why
+        if len(usable) + n_gps < 3:
+            bad = [g.name for g in control if gcp_sfm[g.name]["xyz"] is None]
+            raise RegistrationError(f"only {len(usable)} usable GCPs ({len(control)} control points"
+                                    f"{', %d check points' % len(checks) if checks else ''}; 3 or more needed)"
+                                    + (f"; not usable: {_not_usable(gcp_sfm, bad)}" if bad else ""))
+        if n_gps == 0 and collinearity(np.array([g.xyz for g in usable])) < 1e-3:
+            raise RegistrationError("the usable GCPs are collinear (" + ", ".join(g.name for g in usable)
+                                    + "): the rotation about their line is undetermined; add a GCP off that line")
     if not src:
         raise RegistrationError(f"no GPS positions or triangulated GCPs to georegister with (use={settings.use})")
-    src, tgt = np.array(src), np.array(tgt)
-    fit: Sim3Fit = robust_sim3(src, tgt, settings.gps_inlier_m, what="georegistration points")
+    stated = bool(gps_accuracy) or settings.gcp_accuracy_m is not None
+    fit: Sim3Fit = robust_sim3(np.array(src), np.array(tgt), np.array(th), what="georegistration points",
+                               weights=np.array(w) if stated else None, adaptive=np.array(adaptive))
     rec.transform(fit.tgt_from_src)
     kinds = np.array(kinds)
     report = {"used": settings.use, "n_gps": int((kinds == "gps").sum()), "n_gcp_in_fit": int((kinds == "gcp").sum()),
+              "n_checkpoints": len([g for g in gcps if g.name in checks]),
               "scale": float(fit.tgt_from_src.scale), "n_inliers": int(fit.inliers.sum()),
-              "rmse_inliers_m": fit.rmse_inliers_m,
+              "rmse_inliers_m": fit.rmse_inliers_m, "rmse_m": fit.rmse_inliers_m,
               "gps_residual_median_m": float(np.median(fit.residuals_m[kinds == "gps"])) if (kinds == "gps").any() else None,
+              "gcp_threshold_m": (float(np.median(fit.thresholds_m[kinds == "gcp"]))
+                                  if fit.thresholds_m is not None and (kinds == "gcp").any() else None),
+              "weighted_by_stated_accuracy": stated,
               "outliers": [n for n, ok in zip(names, fit.inliers) if not ok]}
     gres = {}
+    inlier_of = {n: bool(ok) for n, ok, k in zip(names, fit.inliers, kinds) if k == "gcp"}
     for g in gcps:
         s = gcp_sfm[g.name]
         if s["xyz"] is None:
-            gres[g.name] = {"status": "not triangulated", "reason": s["reason"] or "fewer than 2 clicks in registered images",
+            gres[g.name] = {"status": "not triangulated", "check": g.name in checks,
+                            "reason": s["reason"] or "fewer than 2 clicks in registered images",
                             "clicks_in_model": s["clicks_in_model"]}
             continue
         d = sim3_apply(fit.tgt_from_src, s["xyz"][None])[0] - g.xyz
         gres[g.name] = {"status": "ok", "dx_m": float(d[0]), "dy_m": float(d[1]), "dz_m": float(d[2]),
                         "err_m": float(np.linalg.norm(d)), "clicks_used": s["clicks_used"],
-                        "clicks_total": s["clicks_total"], "in_fit": "gcp" in settings.use,
+                        "clicks_total": s["clicks_total"], "check": g.name in checks,
+                        "in_fit": g.name in inlier_of and inlier_of[g.name],
+                        "outlier": g.name in inlier_of and not inlier_of[g.name],
                         "click_residuals_px": s["click_residuals_px"]}
-    ok = [v["err_m"] for v in gres.values() if v["status"] == "ok"]
+    ok = [v["err_m"] for v in gres.values() if v["status"] == "ok" and not v["check"]]
+    chk = [v["err_m"] for v in gres.values() if v["status"] == "ok" and v["check"]]
     report["gcp_residuals"] = gres
     report["gcp_median_err_m"] = float(np.median(ok)) if ok else None
     report["gcp_rmse_m"] = float(np.sqrt(np.mean(np.square(ok)))) if ok else None
+    report["checkpoint_median_err_m"] = float(np.median(chk)) if chk else None
+    report["checkpoint_rmse_m"] = float(np.sqrt(np.mean(np.square(chk)))) if chk else None
     return report
