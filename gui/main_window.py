@@ -16,6 +16,7 @@ from gtkit.render.overlay import default_pose_file
 from .images import ImageCache
 from .ranking import OverlapRanker
 from .review_page import ReviewPage
+from .scene_page import ScenePage
 from .session import load_session, save_session
 from .store import TiePointStore
 from .target_page import TargetPage
@@ -37,9 +38,9 @@ SHORTCUTS = [  # (menu, label, keys, method)
     ("Review", "Reject image", "X", "verdict_reject"), ("Review", "Needs work", "W", "verdict_needs"),
     ("Review", "Next image", "K", "next_image"), ("Review", "Previous image", "J", "prev_image"),
     ("View", "Tie points tab", "Ctrl+1", "tab_tiepoints"), ("View", "Review tab", "Ctrl+2", "tab_review"),
-    ("View", "Targets tab", "Ctrl+3", "tab_targets"),
+    ("View", "Targets tab", "Ctrl+3", "tab_targets"), ("View", "3D scene tab", "Ctrl+4", "tab_scene"),
 ]
-TABS = ("tiepoints", "review", "targets")
+TABS = ("tiepoints", "review", "targets", "scene")
 
 
 class MainWindow(QMainWindow):
@@ -67,10 +68,13 @@ class MainWindow(QMainWindow):
         self.tabs.addTab(self.tiepoints, "Tie points")
         self.tabs.addTab(self.review, "Alignment review")
         self.tabs.addTab(self.targets, "Targets")
+        self.scene3d = ScenePage(self.project)  # built when first shown (gtkit.view.scene, VTK offscreen)
+        self.tabs.addTab(self.scene3d, "3D scene")
+        self._prev_tab = 0
         self.setCentralWidget(self.tabs)
         self.setWindowTitle(f"gtkit annotate: {self.project.name} ({P.root})")
         self.resize(1500, 900)
-        for page in (self.tiepoints, self.review, self.targets):
+        for page in (self.tiepoints, self.review, self.targets, self.scene3d):
             page.status.connect(lambda m: self.statusBar().showMessage(m, 8000))
             page.session_changed.connect(self.schedule_session_save)
         self.tabs.currentChanged.connect(self._tab_changed)
@@ -232,11 +236,25 @@ class MainWindow(QMainWindow):
     def tab_targets(self):
         self.tabs.setCurrentIndex(2)
 
+    def tab_scene(self):
+        self.tabs.setCurrentIndex(3)
+
+    def selected_photo(self, tab: int) -> str | None:
+        """The photo the user has open in a tab (tie points: the query; review and targets: the image)."""
+        return {0: self.tiepoints.query, 1: self.review.image, 2: getattr(self.targets, "image", None)}.get(tab)
+
     def _tab_changed(self, i):
         if i == 1 and self.review.image is None:
             self.review.open_image(getattr(self.review, "_restore_image", None))
         if i == 2:
             self.targets.ensure_shown()
+        if i == 3:  # the 3D view jumps to the photo selected in the tab the user came from
+            photo = self.selected_photo(self._prev_tab)
+            self.scene3d.set_photo(photo)
+            self.scene3d.ensure_scene()
+            if photo:
+                self.scene3d.look_through(photo)
+        self._prev_tab = i
         self.schedule_session_save()
 
     # --- session -------------------------------------------------------------------------------
@@ -257,4 +275,5 @@ class MainWindow(QMainWindow):
         self.cache.shutdown()
         self.tiepoints._pool.clear()
         self.tiepoints._pool.waitForDone(30000)
+        self.scene3d.release()
         super().closeEvent(e)
