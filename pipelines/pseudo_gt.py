@@ -21,6 +21,7 @@ import sys
 
 from gtkit.errors import GtkitError
 from gtkit.project import Project
+from gtkit.settings import resolve
 
 from ._timing import timed
 from gtkit.evaluate import gt_report as report  # the report plus checks against truth / a point cloud
@@ -32,7 +33,7 @@ log = logging.getLogger("pseudo_gt")
 def main(root: str, sfm: blocks.SfmSettings | None = None, reg: register.RegisterSettings | None = None,
          rep: report.ReportSettings | None = None, force: bool = False) -> dict:
     project = Project.load(root)
-    sfm = sfm or blocks.SfmSettings()
+    sfm = sfm or resolve(blocks.SfmSettings(), "sfm", project)
     times = {}
 
     def stage(name, fn, *a, **kw):
@@ -60,10 +61,8 @@ if __name__ == "__main__":
     ap.add_argument("--gps-inlier-m", type=float, default=None, help="GPS Sim(3) threshold (consumer GPS: 5)")
     ap.add_argument("--force", action="store_true")
     a = ap.parse_args()
-    s = blocks.SfmSettings()
-    if a.gps_inlier_m:
-        s.georegister.gps_inlier_m = a.gps_inlier_m
     try:
+        s = resolve(blocks.SfmSettings(), "sfm", Project.load(a.project), {"georegister.gps_inlier_m": a.gps_inlier_m})
         print(json.dumps(main(a.project, s, rep=report.ReportSettings(a.point_cloud), force=a.force), indent=2,
                          default=str))
     except GtkitError as e:

@@ -1,4 +1,5 @@
-"""``gtkit sfm DIR --block reference|queries``: structure from motion of one kind of block."""
+"""``gtkit sfm DIR --block reference|queries``: structure from motion of one kind of block.
+Settings: flag > project.toml [sfm] > default (gtkit.settings)."""
 from __future__ import annotations
 
 
@@ -7,42 +8,59 @@ def register(sub):
     p.add_argument("project")
     p.add_argument("--block", choices=["reference", "queries"], required=True)
     p.add_argument("--max-image-size", type=int, default=None, help="px for SIFT (default 1600)")
-    p.add_argument("--max-features", type=int, default=None, help="SIFT keypoints per image (default 4000)")
+    p.add_argument("--max-features", type=int, default=None, help="SIFT keypoints per image (default 3000)")
+    p.add_argument("--refine-intrinsics", choices=["auto", "yes", "no"], default=None,
+                   help="auto (default): cameras.txt fixed, EXIF focal refined with GPS priors, no focal: "
+                        "self-calibrated; yes: refine all; no: refine none")
+    p.add_argument("--exhaustive-max", type=int, default=None,
+                   help="exhaustive pairs up to this many photos (default 25; 80 when photos lack GPS)")
     p.add_argument("--gps-inlier-m", type=float, default=None,
-                   help="Sim(3) RANSAC threshold on GPS camera centres, metres (default 2)")
+                   help="Sim(3) threshold on GPS camera centres without a stated accuracy, metres (default 2)")
+    p.add_argument("--gcp-accuracy", type=float, default=None, metavar="M",
+                   help="the GCPs' accuracy (1 sigma, metres); default: from their own scatter")
+    p.add_argument("--checkpoints", default=None, metavar="NAMES",
+                   help="comma-separated GCP names used only as check points")
     p.add_argument("--georegister-with", choices=["gps", "gcp", "gps+gcp"], default=None)
     p.add_argument("--force", action="store_true", help="recompute even if a finished run matches")
     p.set_defaults(func=run)
 
 
-def run(args):
+def _print_reference(r: dict) -> None:
+    geo = r.get("georegistration", {})
+    print(f"reference: {r['n_registered']}/{r['n_images']} registered in {r.get('n_models', 1)} model(s), "
+          f"{r.get('n_points3D')} points, mean reprojection {r.get('mean_reproj_px', float('nan')):.2f} px")
+    for m in r.get("models", []) if r.get("n_models", 1) > 1 else []:
+        print(f"  model {m['model']}: {m['n_registered']} photos, {m['n_points3D']} points, "
+              + ("kept" if m.get("kept") else m.get("reason", "")))
+    print(f"georegistration ({geo.get('used')}): {geo.get('n_inliers')} inliers, "
+          f"RMSE {geo.get('rmse_inliers_m', float('nan')):.3f} m; GCP median error "
+          f"{geo.get('gcp_median_err_m')} m; check points {geo.get('checkpoint_median_err_m')} m")
+    for name, g in (geo.get("gcp_residuals") or {}).items():
+        kind = "check point" if g.get("check") else ("GCP (outlier)" if g.get("outlier") else "GCP")
+        print(f"  {kind} {name}: " + (f"{g['err_m']:.3f} m (dx {g['dx_m']:+.3f} dy {g['dy_m']:+.3f} dz {g['dz_m']:+.3f})"
+                                      if g["status"] == "ok" else g["reason"]))
+    for gname, photos in (r.get("gcp_clicks_outside_block") or {}).items():
+        print(f"  GCP {gname}: clicked in photos that are not reference photos: {', '.join(photos)}")
+    for n, why in r["unregistered"].items():
+        print(f"  not registered: {n}: {why}")
 
+
+def run(args):
+    from ..project import Project
+    from ..settings import resolve
     from ..sfm.blocks import SfmSettings, run_queries, run_reference
 
-    s = SfmSettings()
-    if args.max_image_size:
-        s.features.max_image_size = args.max_image_size
-    if args.max_features:
-        s.features.max_num_features = args.max_features
-    if args.gps_inlier_m:
-        s.georegister.gps_inlier_m = args.gps_inlier_m
-    if args.georegister_with:
-        s.georegister.use = args.georegister_with
+    project = Project.load(args.project)
+    s = resolve(SfmSettings(), "sfm", project, {
+        "features.max_image_size": args.max_image_size, "features.max_num_features": args.max_features,
+        "refine_intrinsics": args.refine_intrinsics, "matching.exhaustive_max_images": args.exhaustive_max,
+        "georegister.gps_inlier_m": args.gps_inlier_m, "georegister.gcp_accuracy_m": args.gcp_accuracy,
+        "georegister.checkpoints": args.checkpoints.split(",") if args.checkpoints else None,
+        "georegister.use": args.georegister_with})
     if args.block == "reference":
-        r = run_reference(args.project, s, force=args.force)
-        geo = r.get("georegistration", {})
-        print(f"reference: {r['n_registered']}/{r['n_images']} registered, {r.get('n_points3D')} points, "
-              f"mean reprojection {r.get('mean_reproj_px', float('nan')):.2f} px")
-        print(f"georegistration ({geo.get('used')}): {geo.get('n_inliers')} inliers, "
-              f"RMSE {geo.get('rmse_inliers_m', float('nan')):.3f} m; GCP median error "
-              f"{geo.get('gcp_median_err_m')} m")
-        for name, g in (geo.get("gcp_residuals") or {}).items():
-            print(f"  GCP {name}: " + (f"{g['err_m']:.3f} m (dx {g['dx_m']:+.3f} dy {g['dy_m']:+.3f} dz {g['dz_m']:+.3f})"
-                                        if g["status"] == "ok" else g["reason"]))
-        for n, why in r["unregistered"].items():
-            print(f"  not registered: {n}: {why}")
+        _print_reference(run_reference(project, s, force=args.force))
     else:
-        res = run_queries(args.project, s, force=args.force)
+        res = run_queries(project, s, force=args.force)
         bad = 0
         for seq, r in res.items():
             if "error" in r:

@@ -24,11 +24,13 @@ from ..io.poses import read_intrinsics, write_intrinsics, write_poses
 from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
 from . import quiet_colmap
 from ..progress import progress_bar
+from ..settings import resolve
 from .database import (CameraGroup, FeatureSettings, MatchSettings, build_database, failure_reason,
                        image_diagnostics, match_pairs, read_descriptors)
 from .geometry import RegistrationError, model_cameras, model_poses
 from .georegister import GeoregisterSettings, check_gcp_clicks, georegister
 from .pairs import block_pairs
+from .reference_report import write_reference_report
 
 log = logging.getLogger(__name__)
 
@@ -173,21 +175,48 @@ def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: d
     return sorted(models.values(), key=lambda r: -r.num_reg_images())
 
 
-def _final_bundle_adjustment(rec: pycolmap.Reconstruction, policy: dict) -> None:
-    """Self-calibration: one global BA that also refines the principal point of cameras that had no
-    calibration prior at all (focal and distortion are refined by the mapper)."""
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.refine_focal_length = True
-    opts.refine_principal_point = True
-    opts.refine_extra_params = True
-    config = pycolmap.BundleAdjustmentConfig()
-    for iid in rec.reg_image_ids():
-        config.add_image(iid)
-    config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
-    for cid in rec.cameras:
-        if cid not in policy["self_calibrate"]:
-            config.set_constant_cam_intrinsics(cid)
-    pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
+def _final_bundle_adjustment(rec: pycolmap.Reconstruction, free: set[int], principal_point: set[int]) -> None:
+    """One global BA refining focal + distortion of the cameras in ``free`` (and the principal point
+    of those in ``principal_point``, which had no calibration prior at all); the others constant."""
+    for cams, pp in ((free - principal_point, False), (principal_point, True)):
+        if not cams:
+            continue
+        opts = pycolmap.BundleAdjustmentOptions()
+        opts.refine_focal_length = True
+        opts.refine_principal_point = pp
+        opts.refine_extra_params = True
+        config = pycolmap.BundleAdjustmentConfig()
+        for iid in rec.reg_image_ids():
+            config.add_image(iid)
+        config.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+        for cid in rec.cameras:
+            if cid not in cams:
+                config.set_constant_cam_intrinsics(cid)
+        pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
+
+
+def focal_observable(rec: pycolmap.Reconstruction, min_spread_deg: float = 20.0, min_relief: float = 0.25) -> dict:
+    """Whether the block's geometry tells focal length from distance: views in several directions
+    (largest angle between optical axes) or relief (depth range over median depth in a photo).
+    A flat, nadir-only block does not: a longer focal length and a higher flight fit it equally."""
+    axes, relief = [], []
+    for im in rec.images.values():
+        if not im.has_pose:
+            continue
+        T = im.cam_from_world()
+        R = T.rotation.matrix()
+        axes.append(R.T @ np.array([0.0, 0.0, 1.0]))
+        ids = [p.point3D_id for p in im.points2D if p.has_point3D()]
+        if len(ids) >= 20:
+            X = np.array([rec.points3D[i].xyz for i in ids[:2000]])
+            z = (X @ R.T + T.translation)[:, 2]
+            med = float(np.median(z))
+            if med > 0:
+                relief.append(float((np.percentile(z, 90) - np.percentile(z, 10)) / med))
+    A = np.array(axes)
+    spread = float(np.degrees(np.arccos(np.clip((A @ A.T).min(), -1, 1)))) if len(A) > 1 else 0.0
+    rel = float(np.median(relief)) if relief else 0.0
+    return {"observable": spread >= min_spread_deg or rel >= min_relief, "axis_spread_deg": spread, "relief": rel}
 
 
 def merge_models(models: list[pycolmap.Reconstruction]) -> pycolmap.Reconstruction:
@@ -214,17 +243,22 @@ def merge_models(models: list[pycolmap.Reconstruction]) -> pycolmap.Reconstructi
 
 def intrinsics_policy(settings: SfmSettings, calibrated: set[int], no_prior: set[int], all_ids: set[int],
                       n_gps: int) -> dict:
-    """What the bundle adjustments refine. ``auto``: cameras.txt calibrations stay fixed; cameras
-    with an EXIF focal get focal + distortion refined, held by GPS priors in the BA when the block
-    has GPS (a flat nadir block cannot then trade focal length for flying height); cameras with no
-    focal prior at all are self-calibrated (focal, distortion, then principal point in a final BA).
-    ``yes``: refine every camera (no principal point); ``no``: refine none."""
+    """What the bundle adjustments refine.
+
+    ``auto``: cameras.txt calibrations stay fixed. Cameras with no focal at all are self-calibrated:
+    focal and distortion while mapping, then the principal point in a final BA. Cameras with an EXIF
+    focal get distortion refined while mapping; their focal is refined in a final BA only where the
+    block's geometry determines it (:func:`focal_observable`: a flat nadir block keeps the EXIF focal).
+    GPS positions are weak pose priors in the mapper's BA whenever intrinsics are refined.
+    ``yes``: refine focal + distortion of every camera; ``no``: refine none."""
     mode = settings.refine_intrinsics
     refined = set() if mode == "no" else (set(all_ids) if mode == "yes" else set(all_ids) - calibrated)
-    return {"mode": mode, "refine_focal": bool(refined), "refine_distortion": bool(refined),
-            "constant_cameras": set(all_ids) - refined,
+    self_cal = (no_prior & refined) if mode == "auto" else set()
+    return {"mode": mode, "refine_focal": bool(self_cal) or (mode == "yes" and bool(refined)),
+            "refine_distortion": bool(refined), "constant_cameras": set(all_ids) - refined,
+            "exif_focal": (refined - self_cal) if mode == "auto" else set(),
             "gps_priors_in_ba": bool(refined) and n_gps >= 3 and settings.gps_priors_in_ba,
-            "self_calibrate": (no_prior & refined) if mode == "auto" else set()}
+            "self_calibrate": self_cal}
 
 
 @dataclass
@@ -310,9 +344,20 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         summary["error"] = "the mapper reconstructed nothing (no initial pair found)"
         write_json(out / "block.json", summary)
         return BlockResult(None, summary)
-    if policy["self_calibrate"]:
-        for r in models:
-            _final_bundle_adjustment(r, policy)
+    focal_check = None
+    for k, r in enumerate(models):
+        free = set(policy["self_calibrate"])
+        if policy["exif_focal"]:
+            fo = focal_observable(r)
+            if k == 0:
+                focal_check = fo
+            if fo["observable"]:
+                free |= policy["exif_focal"]
+        if free:
+            _final_bundle_adjustment(r, free & set(r.cameras), policy["self_calibrate"])
+    if focal_check is not None:
+        summary["intrinsics_policy"]["exif_focal_check"] = focal_check
+        summary["intrinsics_policy"]["exif_focal_refined"] = focal_check["observable"]
     models_info = [{"model": k, "n_registered": r.num_reg_images(), "n_points3D": r.num_points3D(),
                     "photos": sorted(im.name for im in r.images.values() if im.has_pose)} for k, r in enumerate(models)]
     kept = [0]
@@ -385,7 +430,7 @@ def run_reference(project: Project | str | Path, settings: SfmSettings | None = 
     """``gtkit sfm DIR --block reference``."""
     quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
-    settings = settings or SfmSettings()
+    settings = settings or resolve(SfmSettings(), "sfm", project)
     P = project.paths
     names = list_images(P.reference_images, P.images)
     if not names:
@@ -396,6 +441,7 @@ def run_reference(project: Project | str | Path, settings: SfmSettings | None = 
         import json
         return json.loads((out / "block.json").read_text())
     res = build_block(project, names, out, "reference", settings, georegister_block=True, label="reference block")
+    write_reference_report(P, res.summary)
     if res.rec is None:
         raise GtkitError(res.summary["error"], out)
     if "error" in res.summary.get("georegistration", {}):
@@ -412,7 +458,7 @@ def run_queries(project: Project | str | Path, settings: SfmSettings | None = No
 
     quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
-    settings = settings or SfmSettings()
+    settings = settings or resolve(SfmSettings(), "sfm", project)
     P = project.paths
     seqs = sequences or P.query_sequences()
     if not seqs:

@@ -1,0 +1,70 @@
+"""``reports/reference.json`` and ``reports/reference.md``: what the reference SfM made of the
+photos, written by ``gtkit sfm DIR --block reference`` (from the block's summary only; no truth)."""
+from __future__ import annotations
+
+from ..io.atomic import write_json, write_text
+from ..project import Paths
+
+GEO_KEYS = ("used", "n_inliers", "rmse_m", "n_gps", "n_gcp_in_fit", "n_checkpoints", "gcp_threshold_m",
+            "gcp_median_err_m", "gcp_rmse_m", "checkpoint_median_err_m", "checkpoint_rmse_m", "outliers", "error")
+
+
+def reference_report(summary: dict) -> dict:
+    geo = summary.get("georegistration", {})
+    return {"n_images": summary["n_images"], "n_registered": summary.get("n_registered", 0),
+            "n_models": summary.get("n_models", 0), "mean_reproj_px": summary.get("mean_reproj_px"),
+            "n_points3D": summary.get("n_points3D"), "pairings": summary.get("pairings"),
+            "n_pairs": summary.get("n_pairs"), "intrinsics_policy": summary.get("intrinsics_policy"),
+            "intrinsics": summary.get("intrinsics"),
+            "georegistration": {k: geo.get(k) for k in GEO_KEYS if k in geo},
+            "gcp_residuals": geo.get("gcp_residuals", {}),
+            "gcp_clicks_outside_block": summary.get("gcp_clicks_outside_block", {}),
+            "models": [{k: v for k, v in m.items() if k != "photos"} for m in summary.get("models", [])],
+            "unregistered": summary.get("unregistered", {}), "seconds": summary.get("seconds", {}),
+            "poses": "work/sfm_reference/poses.txt", "frame": summary.get("frame")}
+
+
+def _f(v, nd=3):
+    return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
+
+
+def write_reference_report(paths: Paths, summary: dict) -> dict:
+    rep = reference_report(summary)
+    write_json(paths.reports / "reference.json", rep)
+    g = rep["georegistration"]
+    lines = ["# Reference block", "",
+             f"- photos registered: **{rep['n_registered']} / {rep['n_images']}** in {rep['n_models']} model(s); "
+             f"{_f(rep['n_points3D'])} 3D points; mean reprojection {_f(rep['mean_reproj_px'], 2)} px",
+             f"- pairs: {_f(rep['n_pairs'])} ({' + '.join(rep['pairings'] or [])})",
+             f"- frame: {rep['frame']}; poses in `{rep['poses']}`", "",
+             "## Georegistration", ""]
+    if "error" in g:
+        lines.append(f"**failed**: {g['error']}")
+    else:
+        lines += [f"- fitted to: {g.get('used')} ({g.get('n_gps')} GPS positions, {g.get('n_gcp_in_fit')} GCPs, "
+                  f"{g.get('n_checkpoints')} check points); {g.get('n_inliers')} inliers, RMSE {_f(g.get('rmse_m'))} m",
+                  f"- GCP residual median {_f(g.get('gcp_median_err_m'))} m, RMSE {_f(g.get('gcp_rmse_m'))} m; "
+                  f"check points median {_f(g.get('checkpoint_median_err_m'))} m"]
+    if rep["gcp_residuals"]:
+        lines += ["", "| point | kind | residual (m) | dx | dy | dz | clicks used |", "|---|---|---|---|---|---|---|"]
+        for n, r in rep["gcp_residuals"].items():
+            kind = "check" if r.get("check") else ("GCP, outlier" if r.get("outlier") else "GCP")
+            if r["status"] == "ok":
+                lines.append(f"| {n} | {kind} | {r['err_m']:.3f} | {r['dx_m']:+.3f} | {r['dy_m']:+.3f} | {r['dz_m']:+.3f} | "
+                             f"{r['clicks_used']}/{r['clicks_total']} |")
+            else:
+                lines.append(f"| {n} | {kind} | – | | | | {r['reason']} |")
+    for n, photos in rep["gcp_clicks_outside_block"].items():
+        lines.append(f"- GCP {n} is clicked in photos that are not reference photos: {', '.join(photos)}")
+    lines += ["", "## Cameras", "", "| camera | model | size | params | |", "|---|---|---|---|---|"]
+    for cid, c in (rep["intrinsics"] or {}).items():
+        lines.append(f"| {cid} | {c['model']} | {c['width']}x{c['height']} | {', '.join(f'{v:.5g}' for v in c['params'])} | "
+                     f"{'fixed' if c['fixed'] else 'refined'} |")
+    if rep["n_models"] > 1:
+        lines += ["", "## Models", ""] + [f"- model {m['model']}: {m['n_registered']} photos, {m['n_points3D']} points, "
+                                          + ("kept" if m.get("kept") else m.get("reason", "")) for m in rep["models"]]
+    if rep["unregistered"]:
+        lines += ["", "## Photos not in the block", ""] + [f"- `{n}`: {w}" for n, w in rep["unregistered"].items()]
+    lines += ["", "Seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in rep["seconds"].items())]
+    write_text(paths.reports / "reference.md", "\n".join(lines) + "\n")
+    return rep
