@@ -25,7 +25,7 @@ from ..project import Project, file_fingerprint, mark_stage_done, settings_dict,
 from . import depth as D
 from . import fusion, surface, texture
 from .settings import ModelSettings
-from .views import block_dir, choose_neighbours, load_image, load_views
+from .views import block_dir, choose_neighbours, fusion_neighbours, load_image, load_views, region
 
 log = logging.getLogger(__name__)
 STAGE = "model"
@@ -70,13 +70,16 @@ def depth_maps(project: Project, views, neighbours, settings: ModelSettings, fol
 
 def fuse(project: Project, views, neighbours, settings: ModelSettings, folder: Path, show: bool = True):
     maps = {n: D.read_depth(D.depth_file(folder, n)) for n in neighbours if D.depth_file(folder, n).is_file()}
+    near = fusion_neighbours(views, list(maps))
+    box = region(views, settings.region_margin)
     acc = fusion.VoxelAccumulator(settings.voxel_m)
     with _bar(len(maps), "fusion", show) as bar:
         for n, dm in maps.items():
             v = views[n]
             xw, rc = fusion.lift(v, dm, settings.fusion_stride)
-            others = [(views[m], maps[m]) for m in neighbours[n] if m in maps]
-            keep = fusion.consistent_count(xw, others, settings.pair_agree) >= settings.min_view_agree
+            others = [(views[m], maps[m]) for m in near[n]]
+            keep = np.all((xw[:, :2] >= box[0]) & (xw[:, :2] <= box[1]), axis=1)
+            keep[keep] = fusion.consistent_count(xw[keep], others, settings.pair_agree) >= settings.min_view_agree
             xw, rc = xw[keep], rc[keep]
             rgb = load_image(project, v, gray=False)[rc[:, 0], rc[:, 1]].astype(np.float64)
             to_cam = v.center - xw
@@ -122,6 +125,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     work = P.stage(STAGE)
     block = block_dir(project)
     views, skipped = load_views(project, settings)
+    n_photos = len(views) + len(skipped)
     inputs = {"poses": file_fingerprint(block / "poses.txt"), "intrinsics": file_fingerprint(block / "intrinsics.txt")}
     if not force and stage_done(work, settings, inputs) and use is None:
         import json
@@ -169,7 +173,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     prev, seconds = t["start"], {}
     for s in steps:
         seconds[s], prev = round(t[s] - prev, 1), t[s]
-    summary = {"model": str(out.relative_to(P.root)), "photos": len(views) + len(skipped),
+    summary = {"model": str(out.relative_to(P.root)), "photos": n_photos,
                "depth_maps": len(neighbours) - len(failed), "skipped": skipped, "points": int(len(xyz)),
                "poisson_triangles": int(n_poisson), "triangles": int(len(F)), "parts": len(parts),
                "unseen_faces": int((best < 0).sum()), "seconds": seconds,

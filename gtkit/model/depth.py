@@ -23,7 +23,7 @@ from .settings import ModelSettings
 from .views import View
 
 
-def rectify_pair(a: View, b: View, max_pixels: float = 4.0):
+def rectify_pair(a: View, b: View, max_pixels: float = 6.0):
     """Homographies and canvas that rectify a -> b (x along the baseline a->b).
     Returns (H_a, H_b, (w, h), K_rect, baseline) or None when the canvas would be too large."""
     ca, cb = a.center, b.center

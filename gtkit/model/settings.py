@@ -7,20 +7,21 @@ from dataclasses import dataclass
 @dataclass
 class ModelSettings:
     max_image_size: int = 1024        # px, longest side of the working images (photos are scaled down to it)
-    neighbours: int = 4               # source photos matched against each photo (best first)
+    neighbours: int = 3               # source photos matched against each photo (best first)
     min_neighbours: int = 2           # a photo with fewer usable neighbours is skipped (with its reason)
     max_angle_deg: float = 30.0       # neighbours look within this angle of the photo's viewing direction
     min_baseline_angle_deg: float = 55.0  # angle between a neighbour's baseline and the viewing direction
-    baseline_ratio: tuple[float, float] = (0.07, 0.5)  # baseline / scene depth of a usable neighbour
+    baseline_ratio: tuple[float, float] = (0.07, 0.75)  # baseline / scene depth of a usable neighbour
     target_ratio: float = 0.2         # preferred baseline / scene depth
     max_disparities: int = 384        # SGBM search range cap (px); the range comes from the sparse points
     block_size: int = 5               # SGBM matching block (px)
     pair_agree: float = 0.01          # relative depth agreement between pairs / between photos
     min_pair_agree: int = 2           # pairs that must agree on a pixel's depth
     min_view_agree: int = 1           # other photos' depth maps that must agree at fusion
+    region_margin: float = 0.5        # model the camera centres' box grown by this x the median scene depth
     fusion_stride: int = 2            # back-project every n-th pixel of each depth map
     voxel_m: float = 0.15             # fused points are averaged per voxel of this size
-    poisson_depth: int = 11           # octree depth of the Poisson surface
-    trim_m: float = 0.6               # surface farther than this from every fused point is cut away
+    poisson_depth: int = 0            # octree depth of the Poisson surface (0: cells of about 2 voxels)
+    trim_m: float = 2.0               # surface farther than this from every fused point is cut away
     max_triangles: int = 600_000      # simplification budget (pymeshlab quadric edge collapse)
     texture_size: int = 1024          # px, longest side of the photos the texture is cut from

@@ -32,7 +32,8 @@ def poisson(xyz: np.ndarray, normals: np.ndarray, settings: ModelSettings) -> tu
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     pc.normals = o3d.utility.Vector3dVector(normals)
-    mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=settings.poisson_depth,
+    depth = settings.poisson_depth or poisson_depth_for(xyz, settings.voxel_m)
+    mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=depth,
                                                                             linear_fit=True, n_threads=2)
     V = np.asarray(mesh.vertices)
     F = np.asarray(mesh.triangles)
@@ -40,6 +41,12 @@ def poisson(xyz: np.ndarray, normals: np.ndarray, settings: ModelSettings) -> tu
     bad_v = dist > settings.trim_m
     keep = ~bad_v[F].any(1)
     return _compact(V, F[keep])
+
+
+def poisson_depth_for(xyz: np.ndarray, voxel: float) -> int:
+    """Octree depth whose cells are about two fusion voxels across the cloud's extent (8..12)."""
+    extent = float(np.max(xyz.max(0) - xyz.min(0)))
+    return int(np.clip(np.ceil(np.log2(extent / (2 * voxel))), 8, 12))
 
 
 def _compact(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -172,9 +172,13 @@ def choose_neighbours(views: dict[str, View], settings: ModelSettings) -> tuple[
             if pc[2] <= 0:
                 continue
             u, vv = w.K[0, 0] * pc[0] / pc[2] + w.K[0, 2], w.K[1, 1] * pc[1] / pc[2] + w.K[1, 2]
-            if not (0.15 * w.width < u < 0.85 * w.width and 0.15 * w.height < vv < 0.85 * w.height):
+            if not (0.05 * w.width < u < 0.95 * w.width and 0.05 * w.height < vv < 0.95 * w.height):
                 continue
-            score = abs(np.log(ratio[j] / settings.target_ratio)) + 2.0 * (1.0 - cosang[j])
+            # a baseline along the picture's rows or columns rectifies without turning the picture
+            # (a diagonal one needs a canvas up to twice as large)
+            bc = v.pose.R @ (C[j] - C[i])
+            turn = abs(np.sin(2 * np.arctan2(bc[1], bc[0])))
+            score = abs(np.log(ratio[j] / settings.target_ratio)) + 2.0 * (1.0 - cosang[j]) + 0.5 * turn
             cand.append((score, names[j]))
         cand.sort()
         chosen = [m for _, m in cand[:settings.neighbours]]
@@ -184,3 +188,24 @@ def choose_neighbours(views: dict[str, View], settings: ModelSettings) -> tuple[
         else:
             out[n] = chosen
     return out, skipped
+
+
+def fusion_neighbours(views: dict[str, View], names: list[str], k: int = 8, max_angle_deg: float = 45.0) -> dict[str, list[str]]:
+    """For the consistency check at fusion: up to ``k`` nearest views among ``names`` that look the same way."""
+    C = np.array([views[n].center for n in names])
+    A = np.array([views[n].axis for n in names])
+    out = {}
+    for i, n in enumerate(names):
+        d = np.linalg.norm(C - C[i], axis=1)
+        ok = (A @ A[i] > np.cos(np.radians(max_angle_deg))) & (d < views[n].median_depth) & (d > 0)
+        idx = np.flatnonzero(ok)
+        out[n] = [names[j] for j in idx[np.argsort(d[idx])][:k]]
+    return out
+
+
+def region(views: dict[str, View], margin: float) -> np.ndarray:
+    """(2, 2) min/max world x, y of the area to model: the camera centres' box grown by ``margin`` x the
+    photos' median scene depth (obliques see far beyond the flight; that far ground is left out)."""
+    C = np.array([v.center[:2] for v in views.values()])
+    m = margin * float(np.median([v.median_depth for v in views.values()]))
+    return np.stack([C.min(0) - m, C.max(0) + m])
