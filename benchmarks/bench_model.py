@@ -1,0 +1,112 @@
+"""``gtkit model build`` measured: time and peak memory per step, the built model's DSM against the
+true world (and the delivered model's beside it), their height difference, overlay misalignment at
+the true query poses with each model.
+
+    gtkit sample create S && mv S/model S_delivered_model && gtkit sfm S --block reference
+    .venv/bin/python benchmarks/bench_model.py S --delivered S_delivered_model/reference.obj [--overlays]
+
+Reads truth/ (evaluation). DSMs of both models on the same grid resolution (``--resolution``);
+cells within 1 m of a true height jump > 2 m are reported apart (gtkit.evaluate.model). Prints one
+table; times are wall seconds on this machine (a shared, noisy 2-core box unless said otherwise).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT)]
+
+from gtkit.project import Project  # noqa: E402
+
+
+def _row(name, m):
+    o, a, e = m["off_edges"], m["all"], m["near_edges"]
+    extra = f" | {100 * m['completeness_of_other_area']:.2f} %" if "completeness_of_other_area" in m else " | "
+    return (f"| {name} | {m['resolution']} | {100 * m['completeness']:.2f} %{extra} | {o['median']:.3f} | {o['p95']:.3f} | "
+            f"{a['median']:.3f} | {a['p95']:.3f} | {e['median']:.3f} / {e['p95']:.2f} | {m['bias']:+.3f} |")
+
+
+def _overlays(root: Path, model: Path, tmp: Path) -> float | None:
+    """Median misalignment (px) of the wide query photos at their TRUE poses over ``model``."""
+    from gtkit.render.overlay import OverlaySettings, write_overlays
+
+    proj = Project.load(root)
+    scratch = Project.create(tmp, proj.frame, "overlay-check")
+    (tmp / "images").symlink_to((root / "images").resolve(), target_is_directory=True)
+    (tmp / "model").mkdir()
+    for f in model.parent.glob(model.stem + "*"):
+        (tmp / "model" / f.name).symlink_to(f.resolve())
+    (tmp / "model" / "reference.obj").exists() or (tmp / "model" / "reference.obj").symlink_to(model.resolve())
+    truth_poses = root / "truth" / "poses.txt"
+    names = sorted(line.split()[0] for line in truth_poses.read_text().splitlines()
+                   if line and not line.startswith("#") and line.split()[0].endswith("_W.jpg"))
+    s = write_overlays(scratch.paths.root, truth_poses, tmp / "ov", OverlaySettings(modes=("blend",)), images=names)
+    return s["median_misalignment_px"]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("project")
+    ap.add_argument("--delivered", help="the delivered model (OBJ + sidecar) to set beside the built one")
+    ap.add_argument("--resolution", type=float, default=0.5, help="DSM cell, m (default %(default)s)")
+    ap.add_argument("--overlays", action="store_true", help="also overlay misalignment at the true query poses")
+    ap.add_argument("--force", action="store_true", help="rebuild the model (depth maps are kept)")
+    a = ap.parse_args(argv)
+
+    from gtkit.evaluate.model import dsm_vs_truth
+    from gtkit.export import dsm
+    from gtkit.model.build import run as build
+    from gtkit.model.compare import run as compare
+
+    root = Path(a.project)
+    t0 = time.time()
+    summary = build(root, force=a.force)
+    wall = time.time() - t0
+    proj = Project.load(root)
+    built = root / summary["model"]
+    s = dsm.DsmSettings(resolution=a.resolution)
+    d_built = dsm.run(proj, s, input=built, out=root / "exports" / "dsm_built.tif")
+    rows = []
+    if a.delivered:
+        d_del = dsm.run(proj, s, input=Path(a.delivered), out=root / "exports" / "dsm_delivered.tif")
+        rows.append(("built", dsm_vs_truth(root, d_built, area_of=d_del)))
+        rows.append(("delivered", dsm_vs_truth(root, d_del)))
+        diff = compare(proj, built, Path(a.delivered), a.resolution, root / "exports" / "model_diff.tif")
+    else:
+        rows.append(("built", dsm_vs_truth(root, d_built)))
+        diff = None
+    print(f"\nmodel build of {root}: {summary['depth_maps']} depth maps of {summary['photos']} photos, "
+          f"{summary['points']} fused points, {summary['triangles']} triangles in {summary['parts']} parts "
+          f"({wall:.0f} s wall in this call; {os.cpu_count()} CPUs)")
+    print("seconds per step: " + json.dumps(summary["seconds"]) + "; peak memory GB after each step: "
+          + json.dumps(summary["peak_memory_gb"]))
+    for n, why in summary["skipped"].items():
+        print(f"  skipped {n}: {why}")
+    print("\n| model | cell m | completeness (grid) | (of delivered area) | median off edges | p95 off edges | "
+          "median all | p95 all | near edges median / p95 | bias |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, m in rows:
+        print(_row(name, m))
+    if diff:
+        print(f"\nbuilt - delivered: median {diff['median']:+.3f} m, median |d| {diff['median_abs']:.3f} m, "
+              f"p95 |d| {diff['p95_abs']:.3f} m over {diff['cells']} cells ({diff['out']})")
+    if a.overlays:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            ov = {"built": _overlays(root, built, Path(tmp) / "b")}
+            if a.delivered:
+                ov["delivered"] = _overlays(root, Path(a.delivered), Path(tmp) / "d")
+        print("overlay median misalignment at the true query poses (px): " + json.dumps(ov))
+    out = root / "reports" / "bench_model.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"summary": summary, "dsm": dict(rows), "diff": diff}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
