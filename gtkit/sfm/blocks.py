@@ -261,6 +261,16 @@ def intrinsics_policy(settings: SfmSettings, calibrated: set[int], no_prior: set
             "self_calibrate": self_cal}
 
 
+def _refined_parts(cid: int, policy: dict, focal_check: dict | None) -> list[str]:
+    if cid in policy["constant_cameras"]:
+        return []
+    if cid in policy["self_calibrate"]:
+        return ["focal", "principal point", "distortion"]
+    if cid in policy["exif_focal"]:
+        return (["focal"] if focal_check and focal_check["observable"] else []) + ["distortion"]
+    return ["focal", "distortion"] if policy["refine_focal"] else ["distortion"]
+
+
 @dataclass
 class BlockResult:
     rec: pycolmap.Reconstruction | None
@@ -414,7 +424,8 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                     "mean_reproj_px": float(rec.compute_mean_reprojection_error()),
                     "intrinsics": {str(cid): {"model": c.model.name, "width": c.width, "height": c.height,
                                               "params": [float(v) for v in c.params],
-                                              "fixed": cid in policy["constant_cameras"]}
+                                              "fixed": cid in policy["constant_cameras"],
+                                              "refined": _refined_parts(cid, policy, focal_check)}
                                    for cid, c in rec.cameras.items()}})
     (out / "model").mkdir(exist_ok=True)
     rec.write(out / "model")

@@ -59,7 +59,7 @@ def write_reference_report(paths: Paths, summary: dict) -> dict:
     lines += ["", "## Cameras", "", "| camera | model | size | params | |", "|---|---|---|---|---|"]
     for cid, c in (rep["intrinsics"] or {}).items():
         lines.append(f"| {cid} | {c['model']} | {c['width']}x{c['height']} | {', '.join(f'{v:.5g}' for v in c['params'])} | "
-                     f"{'fixed' if c['fixed'] else 'refined'} |")
+                     f"{'fixed' if c['fixed'] else 'refined: ' + ', '.join(c.get('refined', []))} |")
     if rep["n_models"] > 1:
         lines += ["", "## Models", ""] + [f"- model {m['model']}: {m['n_registered']} photos, {m['n_points3D']} points, "
                                           + ("kept" if m.get("kept") else m.get("reason", "")) for m in rep["models"]]

@@ -1,0 +1,194 @@
+"""``gtkit init``: a project folder made from a user's own files.
+
+Photos are linked (or copied) into the layout gtkit expects (``images/reference/``,
+``images/queries/<seq>/``); ``gcp_list.txt``, ``geo.txt`` and ``cameras.txt`` are copied in.
+The CRS is the one given, else the CRS line of the GCP / geo file, else the UTM zone of the photos'
+GPS; the local origin is the data's centroid (rounded to 1 m, height 0). Returns what was found
+and what is missing, for the command to print; nothing is written when the input cannot make a
+project (one clear error naming the file and the reason).
+"""
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import GtkitError
+from .geo import GeoFrame, parse_crs, utm_epsg
+from .io.exif import read_photo_meta
+from .io.odm import _data_lines, parse_odm_crs, read_gcp_list, read_geo_txt
+from .project import PROJECT_FILE, Paths, Project
+
+IMAGE_EXT = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+
+@dataclass
+class InitReport:
+    root: Path
+    crs: str = ""
+    crs_from: str = ""
+    origin: tuple = ()
+    reference: dict = field(default_factory=dict)   # counts: photos, gps, dji_xmp, exif_focal, sizes
+    queries: dict = field(default_factory=dict)     # seq -> {photos, wide, zoom, pattern}
+    gcps: dict = field(default_factory=dict)        # n, clicks, check points, missing photos
+    geo: dict = field(default_factory=dict)
+    cameras: int = 0
+    missing: list = field(default_factory=list)     # what is missing, in words
+    notes: list = field(default_factory=list)
+
+
+def _photos(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        raise GtkitError("not a folder of photos", folder)
+    out = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXT)
+    if not out:
+        raise GtkitError(f"no photos ({', '.join(IMAGE_EXT)}) in this folder", folder)
+    return out
+
+
+def _crs_line(path: Path) -> str:
+    header, _ = _data_lines(path)
+    return parse_odm_crs(header, path)
+
+
+def _scan(photos: list[Path]) -> tuple[dict, list]:
+    metas = [read_photo_meta(p) for p in photos]
+    sizes = sorted({f"{m.width}x{m.height}" for m in metas})
+    return ({"photos": len(photos), "gps": sum(m.has_gps for m in metas),
+             "dji_xmp": sum(m.has_gimbal for m in metas),
+             "exif_focal": sum(bool(m.focal_mm or m.focal_35mm) for m in metas), "sizes": sizes}, metas)
+
+
+def _place(src: Path, dst: Path, copy: bool) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if dst.exists() or dst.is_symlink():
+        dst.unlink()
+    if copy:
+        shutil.copy2(src, dst)
+    else:
+        dst.symlink_to(src.resolve())
+
+
+def init_project(root: str | Path, reference: str | Path, queries: list[str | Path] = (), crs: str | None = None,
+                 gcp: str | Path | None = None, geo: str | Path | None = None, cameras: str | Path | None = None,
+                 copy: bool = False, name: str | None = None) -> InitReport:
+    root = Path(root)
+    if (root / PROJECT_FILE).exists():
+        raise GtkitError("already a gtkit project (project.toml exists); use another folder", root)
+    ref_photos = _photos(Path(reference))
+    seqs = {Path(q).name: _photos(Path(q)) for q in queries}
+    if len(seqs) != len(queries):
+        raise GtkitError("two query folders have the same name; each sequence needs its own folder name")
+    for f in (gcp, geo, cameras):
+        if f is not None and not Path(f).is_file():
+            raise GtkitError("file not found", f)
+    rep = InitReport(root)
+    rep.reference, metas = _scan(ref_photos)
+    q_metas = []
+    for s, photos in seqs.items():
+        info, m = _scan(photos)
+        q_metas += m
+        wide = [p for p in photos if p.stem.upper().endswith("_W")]
+        zoom = [p for p in photos if p.stem.upper().endswith("_Z")]
+        info.update(wide=len(wide), zoom=len(zoom))
+        rep.queries[s] = info
+
+    # CRS: given > the GCP / geo file's CRS line > UTM zone of the photos' GPS
+    gps = [(m.lon, m.lat) for m in metas + q_metas if m.has_gps]
+    if crs:
+        spec, rep.crs_from = crs, "--crs"
+    elif gcp is not None:
+        spec, rep.crs_from = _crs_line(Path(gcp)), f"{Path(gcp).name} (first line)"
+    elif geo is not None:
+        spec, rep.crs_from = _crs_line(Path(geo)), f"{Path(geo).name} (first line)"
+    elif gps:
+        lon, lat = np.median(np.array(gps), axis=0)
+        spec, rep.crs_from = f"EPSG:{utm_epsg(float(lon), float(lat))}", "UTM zone of the photos' GPS"
+    else:
+        raise GtkitError("cannot decide the project's CRS: the photos have no GPS and no --gcp / --geo file "
+                         "names one; give --crs EPSG:<code>", reference)
+    c = parse_crs(spec)
+    if not c.is_projected:
+        raise GtkitError(f"CRS {spec!r} is not projected (metres are needed); give a projected CRS with --crs",
+                         rep.crs_from)
+    code = c.to_epsg()
+    spec = f"EPSG:{code}" if code else spec
+
+    # origin: the data's centroid in that CRS
+    zero = GeoFrame(spec, (0.0, 0.0, 0.0))
+    pts = []
+    if gcp is not None:
+        pts += [g.xyz for g in read_gcp_list(gcp, zero)]
+    if geo is not None:
+        pts += [e.xyz for e in read_geo_txt(geo, zero).values()]
+    if not pts and gps:
+        pts = list(zero.wgs84_to_local(*np.array(gps).T, np.zeros(len(gps))))
+    cen = np.nanmedian(np.array(pts), axis=0) if pts else np.zeros(3)
+    frame = GeoFrame(spec, (float(round(cen[0])), float(round(cen[1])), 0.0))
+    rep.crs, rep.origin = spec, frame.origin
+
+    # GCPs: parse with the project's frame; photo names must be reference photos
+    ref_names = {p.name for p in ref_photos}
+    if gcp is not None:
+        gcps = read_gcp_list(gcp, frame)
+        clicked = {c.image for g in gcps for c in g.clicks}
+        missing = sorted(n for n in clicked if Path(n).name not in ref_names)
+        rep.gcps = {"n": len(gcps), "clicks": sum(len(g.clicks) for g in gcps),
+                    "check_points": sorted(g.name for g in gcps if g.check),
+                    "with_fewer_than_2_clicks": sorted(g.name for g in gcps if len(g.clicks) < 2),
+                    "photos_not_found": missing,
+                    "heights_all_equal": len({round(float(g.xyz[2]), 3) for g in gcps}) == 1 and len(gcps) > 1}
+        if missing:
+            rep.notes.append(f"{len(missing)} photos named in {Path(gcp).name} are not among the reference photos "
+                             f"(their clicks are ignored): {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}")
+        if rep.gcps["heights_all_equal"]:
+            rep.notes.append("every GCP has the same height (heights not surveyed?): the fit accepts it and reports "
+                             "the residuals; set [sfm.georegister] gcp_accuracy_m if you know their accuracy")
+    if geo is not None:
+        entries = read_geo_txt(geo, frame)
+        all_names = ref_names | {p.name for ph in seqs.values() for p in ph}
+        found = sum(1 for n in entries if Path(n).name in all_names)
+        rep.geo = {"n": len(entries), "matching_photos": found,
+                   "with_accuracy": sum(e.accuracy is not None for e in entries.values())}
+    if cameras is not None:
+        from .io.poses import read_intrinsics
+
+        rep.cameras = len(read_intrinsics(cameras))
+
+    # what is missing
+    r = rep.reference
+    if r["gps"] < r["photos"] and geo is None:
+        rep.missing.append(f"{r['photos'] - r['gps']} of {r['photos']} reference photos have no GPS: they are paired by "
+                           "exhaustive matching or retrieval" + ("" if gcp else "; without GPS or GCPs the block "
+                                                                 "cannot be placed in the world"))
+    if r["exif_focal"] < r["photos"] and cameras is None:
+        rep.missing.append(f"{r['photos'] - r['exif_focal']} reference photos have no EXIF focal length and there is no "
+                           "cameras.txt: the focal length is self-calibrated")
+    if gcp is None:
+        rep.missing.append("no gcp_list.txt: georegistration by GPS only (or give --gcp)")
+    if not seqs:
+        rep.missing.append("no query sequences (add folders with --queries, one per sequence)")
+    extra = {}
+    for s, info in rep.queries.items():
+        if info["wide"] == 0:
+            extra.setdefault("sfm", {})["query_pattern"] = "*"
+            rep.notes.append(f"query sequence {s}: no *_W / *_Z names, so every photo is taken as a wide photo "
+                             "([sfm] query_pattern = \"*\")")
+
+    # write: photos, files, project.toml last (a half-made folder is never a project)
+    P = Paths(root)
+    for p in ref_photos:
+        _place(p, P.reference_images / p.name, copy)
+    for s, photos in seqs.items():
+        for p in photos:
+            _place(p, P.query_images / s / p.name, copy)
+    for src, dst in ((gcp, P.gcp_list), (geo, P.geo_txt), (cameras, P.cameras)):
+        if src is not None:
+            shutil.copy2(src, dst)
+    imports = {"imports": {"photos": {"reference": str(Path(reference).resolve()),
+                                      "queries": [str(Path(q).resolve()) for q in queries],
+                                      "mode": "copied" if copy else "linked"}}}
+    Project.create(root, frame, name or root.resolve().name, extra={**extra, **imports})
+    return rep
