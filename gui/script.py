@@ -7,6 +7,7 @@ import sys
 from PySide6.QtCore import QObject, Qt, QTimer
 from PySide6.QtGui import QKeySequence
 from PySide6.QtTest import QTest
+from PySide6.QtWidgets import QApplication, QPushButton
 
 
 class ScriptRunner(QObject):
@@ -26,6 +27,9 @@ class ScriptRunner(QObject):
             self.out.flush()
             return
         a = self.actions[self.k]
+        if "until_tab" in a and self.w.tabs.tabText(self.w.tabs.currentIndex()) != a["until_tab"]:
+            QTimer.singleShot(50, self.step)  # a driver switches tabs (e.g. with a real click): wait for it
+            return
         self.k += 1
         wait = self.interval
         info = run_action(self.w, a)
@@ -54,12 +58,19 @@ def run_action(w, a: dict) -> dict:
         QTest.keyClick(w, seq.key(), seq.keyboardModifiers())
         return {"action": a, "undo_index": page.undo.index(), "n_tiepoints": len(page.store)}
     if a.get("quit"):
-        from PySide6.QtCore import QTimer
-        from PySide6.QtWidgets import QApplication
-
         w.close()
         QTimer.singleShot(0, QApplication.instance().quit)
         return {"action": a}
+    if a.get("locate") == "scene":  # the 3D tab's view and buttons on the screen
+        sc = w.scene3d
+        QApplication.processEvents()
+        v = sc.view
+        g = v.mapToGlobal(v.rect().topLeft())
+        buttons = {b.text(): [(c := b.mapToGlobal(b.rect().center())).x(), c.y()]
+                   for b in sc.findChildren(QPushButton)}
+        return {"action": a, "photo": sc.photo, "view": [g.x(), g.y(), v.width(), v.height()],
+                "image_size": list(sc.image().shape[1::-1]) if sc.plotter is not None else None, "buttons": buttons,
+                "open_s": sc.open_s}
     if "locate" in a:  # where photo pixels are on the screen, for drivers that click with real X events
         from PySide6.QtCore import QPointF
 
@@ -72,7 +83,9 @@ def run_action(w, a: dict) -> dict:
         return {"action": a, "image": page.query if a["locate"] == "query" else page.reference,
                 "screen": pts, "zoom": view.zoom(), "window": [w.x(), w.y(), w.width(), w.height()],
                 "viewport": [vp.mapToGlobal(vp.rect().topLeft()).x(), vp.mapToGlobal(vp.rect().topLeft()).y(),
-                             vp.width(), vp.height()]}
+                             vp.width(), vp.height()],
+                "tabs": {w.tabs.tabText(i): [(c := w.tabs.tabBar().mapToGlobal(w.tabs.tabBar().tabRect(i).center())).x(),
+                                             c.y()] for i in range(w.tabs.count())}}
     if "pair" in a:
         page.set_pair(*a["pair"])
         return {"action": a, "query": page.query, "reference": page.reference}

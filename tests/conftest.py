@@ -39,3 +39,38 @@ def tiny_sample(tmp_path_factory):
     root = tmp_path_factory.mktemp("tiny") / "site"
     settings = load_preset("tiny")
     return root, settings, create_sample(root, settings, quiet=True)
+
+
+DEMO_DB_ARGS = ["--heights", "110", "--intervals", "80", "--pitches", "0,45", "--yaw-step", "90", "--size", "320x240",
+                "--hfov", "70", "--executor", "serial"]
+
+
+@pytest.fixture(scope="session")
+def finished_demo(tmp_path_factory):
+    """A small finished project (about 15 s): the GUI demo site (10 reference, 3 query photos) taken
+    through render-db (a tiny grid), localize, overlay, export mesh, report, and an annotator
+    session that reviewed the localized poses (one verdict). Read-only by convention: copy it."""
+    from PySide6.QtWidgets import QApplication
+
+    from gtkit.cli import main
+    from gui.app import make_app
+    from gui.demo import make_demo_project
+    from gui.main_window import MainWindow
+
+    root = make_demo_project(tmp_path_factory.mktemp("finished") / "site", n_query=3).paths.root
+    assert main(["render-db", str(root), *DEMO_DB_ARGS]) == 0
+    assert main(["localize", str(root), "--executor", "serial"]) == 0
+    poses = root / "work" / "localize" / "poses.txt"
+    assert main(["overlay", str(root), "--poses", str(poses)]) == 0
+    assert main(["export", "mesh", str(root)]) == 0
+    assert main(["report", str(root)]) == 0
+    make_app()
+    w = MainWindow(root, poses=str(poses))
+    w.show()
+    w.tabs.setCurrentIndex(1)
+    QApplication.processEvents()
+    assert w.review.image is not None
+    w.review.set_verdict("accept")
+    w.save_session()
+    w.close()
+    return root

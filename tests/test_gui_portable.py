@@ -22,35 +22,14 @@ from PySide6.QtWidgets import QApplication  # noqa: E402
 
 from gtkit.cli import main  # noqa: E402
 
-DB_ARGS = ["--heights", "110", "--intervals", "80", "--pitches", "0,45", "--yaw-step", "90", "--size", "320x240",
-           "--hfov", "70", "--executor", "serial"]
+from conftest import DEMO_DB_ARGS as DB_ARGS  # noqa: E402
+
 TEXT = {".json", ".txt", ".toml", ".md", ".csv", ".geojson", ".mtl", ".svg"}
 
 
 @pytest.fixture(scope="module")
-def finished(tmp_path_factory):
-    """A finished small project (about 15 s): returns its root."""
-    from gui.app import make_app
-    from gui.demo import make_demo_project
-    from gui.main_window import MainWindow
-
-    root = make_demo_project(tmp_path_factory.mktemp("orig") / "site", n_query=3).paths.root
-    assert main(["render-db", str(root), *DB_ARGS]) == 0
-    assert main(["localize", str(root), "--executor", "serial"]) == 0
-    poses = root / "work" / "localize" / "poses.txt"
-    assert main(["overlay", str(root), "--poses", str(poses)]) == 0
-    assert main(["export", "mesh", str(root)]) == 0
-    assert main(["report", str(root)]) == 0
-    make_app()
-    w = MainWindow(root, poses=str(poses))  # the annotator reviewing the localized poses
-    w.show()
-    w.tabs.setCurrentIndex(1)
-    QApplication.processEvents()
-    assert w.review.image is not None
-    w.review.set_verdict("accept")
-    w.save_session()
-    w.close()
-    return root
+def finished(finished_demo):
+    return finished_demo
 
 
 def _records(root: Path) -> dict[str, str]:

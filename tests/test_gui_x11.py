@@ -15,6 +15,7 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -97,6 +98,8 @@ def test_annotator_on_xvfb_real_click_screenshot_and_key(xserver, tmp_path):
     t0 = time.time()
     app = subprocess.Popen([sys.executable, "-m", "gtkit.cli", "annotate", str(site)], env=env, cwd=str(ROOT),
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    watchdog = threading.Timer(150, app.kill)  # a hung GUI must not hang the test run
+    watchdog.start()
     try:
         loc = None
         for line in app.stdout:
@@ -158,6 +161,7 @@ def test_annotator_on_xvfb_real_click_screenshot_and_key(xserver, tmp_path):
         print(f"annotator on Xvfb: open {open_s:.2f} s, photo correlation {corr:.4f} (3 px off: {off:.4f}), click at "
               f"({o.x:.2f}, {o.y:.2f}) for ({cx}, {cy}), zoom {zoom:.3f}")
     finally:
+        watchdog.cancel()
         app.kill()
         app.wait(10)
 
@@ -177,3 +181,66 @@ def test_annotate_without_a_display_says_what_to_do(tmp_path):
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and expect in lines[0] and "QT_QPA_PLATFORM=offscreen" in lines[0], r.stderr
         assert "Could not load the Qt platform plugin" not in r.stderr
+
+
+def test_scene_tab_on_xvfb(xserver, finished_demo, tmp_path):
+    """The 3D tab in the annotator on X (VTK renders through EGL beside Qt's xcb window): a real
+    click on the tab opens it looking through the photo selected in the review tab (the X screen
+    shows that photo's view of the model), a real click on "Top" shows the reference cameras' frusta."""
+    import cv2
+
+    site = tmp_path / "site"
+    shutil.copytree(finished_demo, site)  # its session reopens the review tab on queries/seq1/0000_W.jpg
+    script = tmp_path / "actions.json"
+    script.write_text(json.dumps([{"locate": "query", "points": [[0, 0]]}, {"until_tab": "3D scene", "locate": "scene"},
+                                  {"wait": 120000}]))
+    env = dict(xserver, GTKIT_GUI_SCRIPT=str(script))
+    app = subprocess.Popen([sys.executable, "-m", "gtkit.cli", "annotate", str(site)], env=env, cwd=str(ROOT),
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    watchdog = threading.Timer(150, app.kill)  # a hung GUI must not hang the test run
+    watchdog.start()
+    try:
+        done = (json.loads(line[5:]) for line in app.stdout if line.startswith("DONE "))
+        loc = next(done, None)
+        assert loc is not None, f"the annotator did not start on X: {app.stderr.read()[-1500:]}"
+        _pointer(xserver, *loc["tabs"]["3D scene"], "click", "1")  # a real click on the tab
+        sc = next(done, None)
+        assert sc is not None and sc["photo"] == "queries/seq1/0000_W.jpg", sc
+        _pointer(xserver, 1599, 999)
+        time.sleep(0.3)
+        shot = _screenshot(xserver, tmp_path / "through_photo.png")
+        vx, vy, vw, vh = sc["view"]
+        iw, ih = sc["image_size"]
+        x0, y0 = vx + (vw - iw) // 2, vy + (vh - ih) // 2  # the rendered image, centred in the view
+        shown = shot[y0:y0 + ih, x0:x0 + iw]
+        photo = cv2.imread(str(site / "images" / sc["photo"]))
+        ph, pw = photo.shape[:2]
+        cw = int(round(ih * pw / ph))  # same vertical field of view: the photo spans the view's height
+        crop = cv2.resize(shown[:, (iw - cw) // 2:(iw - cw) // 2 + cw], (pw, ph), interpolation=cv2.INTER_AREA)
+
+        def g(a):
+            return cv2.GaussianBlur(cv2.cvtColor(a, cv2.COLOR_BGR2GRAY).astype(float), (0, 0), 2).ravel()
+
+        corr = np.corrcoef(g(crop), g(photo))[0, 1]
+        assert corr > 0.7, corr
+
+        def frustum_pixels(img):
+            img = img[vy:vy + vh, vx:vx + vw]
+            return int(((img[..., 2] > 230) & (np.abs(img[..., 1].astype(int) - 0xD4) < 20) & (img[..., 0] < 40)).sum())
+
+        before = frustum_pixels(shot)
+        _pointer(xserver, *sc["buttons"]["Top"], "click", "1")
+        _pointer(xserver, 1599, 999)
+        after = _wait_for(lambda: (n := frustum_pixels(_screenshot(xserver, tmp_path / "scene.png"))) > before + 500
+                          and n, timeout=30)
+        assert after, f"no camera frusta on the X screen after 'Top' ({before} frustum-coloured pixels before)"
+        out = os.environ.get("GTKIT_X11_SCENE_SCREENSHOT")
+        if out:
+            shutil.copy(tmp_path / "scene.png", out)
+        assert app.poll() is None, app.stderr.read()[-1500:]  # still running: no GL clash
+        print(f"3D tab on Xvfb: opened in {sc['open_s']:.2f} s, view through the photo vs the photo: correlation "
+              f"{corr:.3f}; frustum pixels {before} -> {after}")
+    finally:
+        watchdog.cancel()
+        app.kill()
+        app.wait(10)

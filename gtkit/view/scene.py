@@ -14,8 +14,8 @@ What is drawn, all read from the project's files (never ``truth/``):
 - GCPs (``gcp_list.txt``) with their georegistration residual vectors (scaled, from
   ``work/sfm_reference/block.json``), and target tracks (``exports/tracks.csv``).
 
-Rendering uses VTK's EGL window when there is no X display (``VTK_DEFAULT_OPENGL_WINDOW``), so it
-runs headless like the rest of gtkit.
+Rendering uses VTK's EGL window (``VTK_DEFAULT_OPENGL_WINDOW``), so it runs headless like the rest
+of gtkit, and beside gtkit's own EGL renderer in the annotator.
 """
 from __future__ import annotations
 
@@ -72,9 +72,10 @@ class SceneData:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
-def _use_egl_without_display():
-    if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
-        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+def _use_egl():
+    """Offscreen VTK renders through EGL, with or without a display: no X display is needed, and in
+    the annotator a GLX context must not follow the EGL one of gtkit's own renderer."""
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 
 # --- reading the project ---------------------------------------------------------------------
@@ -324,7 +325,7 @@ def set_photo_view(plotter, pose: Pose, cam: Camera | None, distance: float = 10
 def new_plotter(width: int, height: int):
     import pyvista as pv
 
-    _use_egl_without_display()
+    _use_egl()
     # no anti-aliasing: on Mesa's llvmpipe (CPU) pyvista's default 4x MSAA made a frame 6x slower
     # (112 vs 17 ms at 1280x800), and FXAA falls back to SSAA in VTK's EGL build (229 ms)
     import copy
