@@ -146,13 +146,17 @@ def test_init_makes_a_project_from_a_folder_of_photos(tiny_sample, tmp_path, cap
 # --- end to end on variants -----------------------------------------------------------------
 
 def test_no_gps_gcps_at_one_height(tiny_sample, tmp_path):
-    """No GPS in any photo, every GCP at one height: exhaustive pairs register every photo; the
+    """No GPS in any photo, every GCP at one height: retrieval pairs register every photo; the
     GCP-only georegistration succeeds (pycolmap's estimator returns None here) and reports the
     GCPs' metre-grade residuals. Measured (seeds 0-2): 45/45, GCP median 0.4-0.6 m."""
     root = _variant(tiny_sample, tmp_path, "no-gps", "flat-gcps")
+    # project.toml settings reach the stage: retrieval pairs instead of exhaustive past 30 photos
+    proj = Project.load(root)
+    proj.config["sfm"] = {"matching": {"exhaustive_max_without_gps": 30, "retrieval_neighbors": 15}}
+    proj.save()
     r = run_reference(root)
     assert r["n_registered"] / r["n_images"] >= 0.93 and r["n_models"] == 1
-    assert r["pairings"] == ["exhaustive"] and r["n_gps"] == 0
+    assert r["pairings"] == ["retrieval"] and r["n_gps"] == 0 and r["n_pairs"] < 45 * 44 / 2
     geo = r["georegistration"]
     assert geo["n_gps"] == 0 and geo["n_gcp_in_fit"] == 4 and geo["n_inliers"] == 4
     assert geo["gcp_median_err_m"] < 1.5

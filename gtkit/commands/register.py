@@ -17,18 +17,17 @@ def register(sub):
 
 
 def run(args):
+    from ..project import Project
+    from ..settings import resolve
     from ..sfm.register import RegisterSettings
     from ..sfm.register import run as run_register
 
-    s = RegisterSettings()
-    if args.sim3_max_error_m:
-        s.sim3_max_error_m = args.sim3_max_error_m
-    if args.tie_max_px:
-        s.tie_max_px = args.tie_max_px
-    s.refine_query_intrinsics = args.refine_query_intrinsics
-    if args.cross_matches is not None:
-        s.cross.ref_per_query = args.cross_matches
-    r = run_register(args.project, s, force=args.force)
+    project = Project.load(args.project)
+    s = resolve(RegisterSettings(), "register", project, {
+        "sim3_max_error_m": args.sim3_max_error_m, "tie_max_px": args.tie_max_px,
+        "refine_query_intrinsics": True if args.refine_query_intrinsics else None,
+        "cross.ref_per_query": args.cross_matches})
+    r = run_register(project, s, force=args.force)
     failed = 0
     for seq, info in r["sequences"].items():
         if info["status"] == "error":

@@ -39,6 +39,7 @@ from ..io.tiepoints import TiePoint, read_tiepoints
 from ..pose import Pose
 from ..project import Project, file_fingerprint, mark_stage_done, stage_done
 from . import quiet_colmap
+from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
 from .crossmatch import AUTO_PREFIX, CrossMatchSettings, cross_matches
 from .geometry import RegistrationError, model_cameras, model_poses, robust_sim3, triangulate_clicks
@@ -364,7 +365,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     """``gtkit register DIR``: pseudo-GT poses of every registered query photo."""
     quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
-    settings = settings or RegisterSettings()
+    settings = settings or resolve(RegisterSettings(), "register", project)
     P = project.paths
     out = P.stage(STAGE)
     ref_dir = P.stage(REFERENCE_STAGE) / "model"
