@@ -16,7 +16,7 @@ import pycolmap
 from ..io.odm import GCP
 from .geometry import (RegistrationError, Sim3Fit, model_cameras, model_poses, robust_sim3, sim3_apply,
                        triangulate_clicks)
-from .similarity import collinearity
+from .similarity import collinearity, group_weighted_refit
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +102,15 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
     stated = bool(gps_accuracy) or settings.gcp_accuracy_m is not None
     fit: Sim3Fit = robust_sim3(np.array(src), np.array(tgt), np.array(th), what="georegistration points",
                                weights=np.array(w) if stated else None, adaptive=np.array(adaptive))
-    rec.transform(fit.tgt_from_src)
     kinds = np.array(kinds)
+    sigmas = None
+    if not stated and len(set(kinds[fit.inliers])) > 1 and fit.inliers.sum() >= 4:
+        # GPS and GCPs of unknown accuracy: each group weighted by its own scatter
+        sim, sigmas = group_weighted_refit(np.array(src), np.array(tgt), fit.inliers, kinds)
+        r = np.linalg.norm(sim.apply(np.array(src)) - np.array(tgt), axis=1)
+        fit = Sim3Fit(pycolmap.Sim3d(sim.scale, pycolmap.Rotation3d(sim.R), sim.t), fit.inliers, r,
+                      float(np.sqrt(np.mean(r[fit.inliers] ** 2))), fit.thresholds_m)
+    rec.transform(fit.tgt_from_src)
     report = {"used": settings.use, "n_gps": int((kinds == "gps").sum()), "n_gcp_in_fit": int((kinds == "gcp").sum()),
               "n_checkpoints": len([g for g in gcps if g.name in checks]),
               "scale": float(fit.tgt_from_src.scale), "n_inliers": int(fit.inliers.sum()),
@@ -112,6 +119,7 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
               "gcp_threshold_m": (float(np.median(fit.thresholds_m[kinds == "gcp"]))
                                   if fit.thresholds_m is not None and (kinds == "gcp").any() else None),
               "weighted_by_stated_accuracy": stated,
+              "group_sigma_m": sigmas,
               "outliers": [n for n, ok in zip(names, fit.inliers) if not ok]}
     gres = {}
     inlier_of = {n: bool(ok) for n, ok, k in zip(names, fit.inliers, kinds) if k == "gcp"}

@@ -121,3 +121,25 @@ def lo_ransac_similarity(src: np.ndarray, tgt: np.ndarray, thresholds: np.ndarra
             break
         inl = new
     return RobustFit(sim, inl, r, th)
+
+
+def group_weighted_refit(src: np.ndarray, tgt: np.ndarray, inliers: np.ndarray, groups: np.ndarray,
+                         iterations: int = 5, floor: float = 0.01) -> tuple[Similarity, dict]:
+    """Refit on the inliers with each group of points (e.g. GPS centres, GCPs) weighted by the
+    inverse variance of its own residuals, re-estimated each round (floor ``floor`` metres): points
+    of unknown accuracy are weighted by how well they agree, so metre-grade GCPs beside centimetre
+    GPS (or the reverse) no longer tilt the fit. Returns the similarity and {group: sigma}."""
+    src, tgt, groups = np.asarray(src, float), np.asarray(tgt, float), np.asarray(groups)
+    inl = np.asarray(inliers, bool)
+    sim = umeyama(src[inl], tgt[inl])
+    sigma = {}
+    for _ in range(iterations):
+        r = np.linalg.norm(sim.apply(src) - tgt, axis=1)
+        sigma = {g: max(float(np.sqrt(np.mean(r[inl & (groups == g)] ** 2) / 3.0)), floor)
+                 for g in np.unique(groups[inl])}
+        w = np.array([1.0 / sigma[g] ** 2 for g in groups[inl]])
+        new = umeyama(src[inl], tgt[inl], w)
+        if new is None:
+            break
+        sim = new
+    return sim, sigma
