@@ -30,6 +30,7 @@ from .views import block_dir, choose_neighbours, fusion_neighbours, load_image, 
 log = logging.getLogger(__name__)
 STAGE = "model"
 MODEL_FILE = "reference.obj"
+DEPTH_VERSION = 2   # bump when the depth maps' method changes (finished maps of another version are not reused)
 
 
 def _peak_gb() -> float:
@@ -144,7 +145,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     depth_keys = {k: v for k, v in settings_dict(settings).items()
                   if k in ("max_image_size", "neighbours", "min_neighbours", "max_angle_deg", "baseline_ratio",
                            "target_ratio", "max_disparities", "block_size", "pair_agree", "min_pair_agree")}
-    folder = work / "depth" / settings_key({"depth": depth_keys, "inputs": inputs})
+    folder = work / "depth" / settings_key({"depth": depth_keys, "inputs": inputs, "version": DEPTH_VERSION})
     folder.mkdir(parents=True, exist_ok=True)
     failed = depth_maps(project, views, neighbours, settings, folder, show)
     skipped.update(failed)

@@ -72,8 +72,10 @@ def check_georegistered(project: Project) -> Path:
     return out
 
 
-def _depth_ranges(block: Path, poses: dict[str, Pose]) -> dict[str, tuple[float, float, float]]:
-    """(near, far, median) camera depth of each photo's sparse points (pycolmap reconstruction)."""
+def _depth_ranges(block: Path, poses: dict[str, Pose], cams: dict[str, Camera]) -> dict[str, tuple[float, float, float]]:
+    """(near, far, median) camera depth of each photo's scene from the sparse points (pycolmap
+    reconstruction). A photo's own points can miss a tall roof (few features there): ``near`` is
+    also no farther than where its rays meet the height of the block's highest points."""
     import pycolmap
 
     model = block / "model"
@@ -81,10 +83,13 @@ def _depth_ranges(block: Path, poses: dict[str, Pose]) -> dict[str, tuple[float,
         return {}
     rec = pycolmap.Reconstruction(str(model))
     xyz = {pid: p.xyz for pid, p in rec.points3D.items()}
+    if not xyz:
+        return {}
+    z_top = float(np.percentile(np.array(list(xyz.values()))[:, 2], 99.9)) + 1.0
     out = {}
     for im in rec.images.values():
         pose = poses.get(im.name)
-        if pose is None:
+        if pose is None or im.name not in cams:
             continue
         ids = [p.point3D_id for p in im.points2D if p.has_point3D()]
         if len(ids) < 20:
@@ -93,7 +98,16 @@ def _depth_ranges(block: Path, poses: dict[str, Pose]) -> dict[str, tuple[float,
         z = z[z > 0]
         if len(z) < 20:
             continue
-        out[im.name] = (float(np.percentile(z, 1)), float(np.percentile(z, 99)), float(np.median(z)))
+        near = float(np.percentile(z, 1))
+        cam = cams[im.name]
+        u, v = np.meshgrid(np.linspace(0, cam.width, 7), np.linspace(0, cam.height, 7))
+        xn = cam.image_to_world(np.stack([u.ravel(), v.ravel()], 1))
+        d = np.concatenate([xn, np.ones((len(xn), 1))], 1) @ pose.R      # world directions, camera z = 1
+        down = d[:, 2] < -1e-6
+        height = pose.center[2] - z_top
+        if down.any() and height > 0:
+            near = min(near, float(np.min(height / -d[down, 2])))
+        out[im.name] = (near, float(np.percentile(z, 99)), float(np.median(z)))
     return out
 
 
@@ -102,7 +116,7 @@ def load_views(project: Project, settings: ModelSettings) -> tuple[dict[str, Vie
     block = check_georegistered(project)
     poses = read_poses(block / "poses.txt")
     cams = read_intrinsics(block / "intrinsics.txt")
-    ranges = _depth_ranges(block, poses)
+    ranges = _depth_ranges(block, poses, cams)
     views, skipped = {}, {}
     for name in sorted(poses):
         if name not in cams:
