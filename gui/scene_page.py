@@ -2,12 +2,13 @@
 pseudo-GT, localized coloured by error), GCPs with residual vectors and target tracks
 (:mod:`gtkit.view.scene`).
 
-VTK renders offscreen (EGL) into an image shown in the tab, rather than in a pyvistaqt
-``QtInteractor``: that widget needs a native OpenGL window (GLX under X), which Qt's offscreen
-platform cannot give and which must not follow the annotator's own EGL renderer in one process.
-Left drag orbits, right drag pans, the wheel zooms; "Look through photo" puts the view at the
-photo selected in the other tabs (it also happens when the tab is opened). The scene is built the
-first time the tab is shown, so the annotator opens as fast as before."""
+VTK renders offscreen in a child process (:class:`gtkit.view.process.SceneProcess`; VTK and the
+annotator's own moderngl renderer must not share a process) and the tab shows the image it
+returns. A pyvistaqt ``QtInteractor`` is not used: it needs a native OpenGL window in this process
+(GLX under X), which Qt's offscreen platform cannot give and which would share Mesa with the review's
+renderer. Left drag orbits, right drag pans, the wheel zooms; "Look through photo" puts the view at
+the photo selected in the other tabs (also done when the tab is opened). The scene is built the first
+time the tab is shown, so the annotator opens as fast as before."""
 from __future__ import annotations
 
 import time
@@ -58,11 +59,11 @@ class ScenePage(QWidget):
     def __init__(self, project, parent=None):
         super().__init__(parent)
         self.project = project
-        self.scene = None
-        self.plotter = None
+        self.proc = None
         self.frame_ms: list[float] = []
         self.open_s: float | None = None
         self.photo: str | None = None
+        self._img = None
         self.view = SceneView(self)
         self.info = QLabel("the 3D scene is built when this tab is first shown")
         self.info.setWordWrap(True)
@@ -80,24 +81,21 @@ class ScenePage(QWidget):
 
     # --- building and drawing ------------------------------------------------------------------
     def ensure_scene(self):
-        if self.plotter is not None:
+        if self.proc is not None:
             return
-        from gtkit.view.scene import build, load_scene, new_plotter, set_overview
+        from gtkit.view.process import SceneProcess
 
-        t0 = time.perf_counter()
-        self.scene = load_scene(self.project)
         w, h = max(self.view.width(), 320), max(self.view.height(), 240)
-        self.plotter = new_plotter(w, h)
-        build(self.plotter, self.scene)
-        set_overview(self.plotter, self.scene, "oblique")
+        self.proc = SceneProcess(self.project.paths.root, w, h)
         self.draw()
-        self.open_s = time.perf_counter() - t0
-        sc = self.scene
+        self.open_s = self.proc.open_s + self.frame_ms[-1] / 1000
+        i = self.proc.info
         self.info.setText(
-            f"model {sc.n_triangles_shown:,} of {sc.n_triangles_model:,} triangles; {len(sc.reference)} reference cameras "
-            f"({sc.reference_source}); trajectories: " + (", ".join(f"{k} {len(v)}" for k, v in sc.queries.items()) or "none")
-            + (f"; colour = {sc.error_source}" if sc.error_source else "")
-            + f"; {len(sc.gcps)} GCPs, {len(sc.tracks)} tracks; opened in {self.open_s:.2f} s. "
+            f"model {i['triangles'][1]:,} of {i['triangles'][0]:,} triangles; {i['n_reference_cameras']} reference "
+            f"cameras ({i['reference_source']}); trajectories: "
+            + (", ".join(f"{k} {v}" for k, v in i["trajectories"].items()) or "none")
+            + (f"; colour = {i['error_source']}" if i["error_source"] else "")
+            + f"; {i['n_gcps']} GCPs, {i['n_tracks']} tracks; opened in {self.open_s:.2f} s. "
             "Left drag: orbit, right drag: pan, wheel: zoom.")
         self.status.emit(f"3D scene opened in {self.open_s:.2f} s")
 
@@ -106,81 +104,50 @@ class ScenePage(QWidget):
         return self._img
 
     def draw(self):
-        if self.plotter is None:
+        if self.proc is None:
             return
         t = time.perf_counter()
-        self.plotter.render()  # (pyvista's screenshot reads the last frame; it does not render)
-        img = np.ascontiguousarray(self.plotter.screenshot(None, return_img=True)[..., :3])
+        img = self.proc.render()
         self._img = img
         q = QImage(img.data, img.shape[1], img.shape[0], 3 * img.shape[1], QImage.Format.Format_RGB888).copy()
         self.view.setPixmap(QPixmap.fromImage(q))
         self.frame_ms.append(1000 * (time.perf_counter() - t))
 
     def resized(self):
-        if self.plotter is None:
+        if self.proc is None or self._img is None:
             return
         w, h = self.view.width(), self.view.height()
-        if w >= 64 and h >= 64 and tuple(self.plotter.window_size) != (w, h):
-            self.plotter.window_size = (w, h)
+        if w >= 64 and h >= 64 and (self._img.shape[1], self._img.shape[0]) != (w, h):
+            self.proc.size(w, h)
             self.draw()
 
     # --- navigation ----------------------------------------------------------------------------
     def drag(self, dx: float, dy: float, pan: bool = False):
-        if self.plotter is None:
+        if self.proc is None:
             return
-        cam = self.plotter.camera
         if pan:
-            d = np.linalg.norm(np.subtract(cam.position, cam.focal_point))
-            s = 2 * d * np.tan(np.radians(cam.view_angle) / 2) / max(self.view.height(), 1)
-            fwd = np.subtract(cam.focal_point, cam.position)
-            fwd /= np.linalg.norm(fwd)
-            up = np.asarray(cam.up, float)
-            right = np.cross(fwd, up)
-            move = (-dx * right + dy * up) * s
-            cam.position, cam.focal_point = np.add(cam.position, move), np.add(cam.focal_point, move)
+            self.proc.pan(dx, dy, self.view.height())
         else:
-            cam.Azimuth(-0.4 * dx)
-            cam.Elevation(0.4 * dy)
-            cam.OrthogonalizeViewUp()
-        self.plotter.reset_camera_clipping_range()
+            self.proc.orbit(-0.4 * dx, 0.4 * dy)
         self.draw()
 
     def zoom(self, factor: float):
-        if self.plotter is None:
+        if self.proc is None:
             return
-        self.plotter.camera.Dolly(factor)
-        self.plotter.reset_camera_clipping_range()
+        self.proc.dolly(factor)
         self.draw()
 
     def overview(self, which: str):
         self.ensure_scene()
-        from gtkit.view.scene import set_overview
-
-        set_overview(self.plotter, self.scene, which)
+        self.proc.overview(which)
         self.draw()
-
-    def pose_of(self, name: str | None):
-        """The best pose the project has for a photo: pseudo-GT, localized, reference block, prior."""
-        if not name or self.scene is None:
-            return None, None
-        sc = self.scene
-        for kind in ("pseudo_gt", "localized", "prior"):
-            if name in sc.query_poses.get(kind, {}):
-                return sc.query_poses[kind][name], sc.cameras.get(name)
-        if name in sc.reference:
-            return sc.reference[name]
-        return None, None
 
     def look_through(self, name: str | None):
         """Put the view at the photo's pose (the photo selected in the other tabs)."""
         self.ensure_scene()
-        pose, cam = self.pose_of(name)
-        if pose is None:
+        if not name or not self.proc.photo(name):
             self.status.emit(f"no pose for {name}" if name else "no photo selected in the other tabs")
             return False
-        from gtkit.view.scene import set_photo_view
-
-        set_photo_view(self.plotter, pose, cam)
         self.draw()
         self.status.emit(f"3D view through {name}")
         return True
@@ -189,6 +156,6 @@ class ScenePage(QWidget):
         self.photo = name
 
     def release(self):
-        if self.plotter is not None:
-            self.plotter.close()
-            self.plotter = None
+        if self.proc is not None:
+            self.proc.close()
+            self.proc = None

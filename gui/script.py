@@ -69,7 +69,7 @@ def run_action(w, a: dict) -> dict:
         buttons = {b.text(): [(c := b.mapToGlobal(b.rect().center())).x(), c.y()]
                    for b in sc.findChildren(QPushButton)}
         return {"action": a, "photo": sc.photo, "view": [g.x(), g.y(), v.width(), v.height()],
-                "image_size": list(sc.image().shape[1::-1]) if sc.plotter is not None else None, "buttons": buttons,
+                "image_size": list(sc.image().shape[1::-1]) if sc.image() is not None else None, "buttons": buttons,
                 "open_s": sc.open_s}
     if "locate" in a:  # where photo pixels are on the screen, for drivers that click with real X events
         from PySide6.QtCore import QPointF

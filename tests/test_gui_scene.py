@@ -47,34 +47,33 @@ def test_gtkit_view_writes_snapshots(finished_demo, tmp_path, capsys):
 def test_scene_draws_cameras_where_they_are_and_looks_through_photos(finished_demo):
     import cv2
 
-    from gtkit.io.poses import read_intrinsics, read_poses
-    from gtkit.view.scene import ViewSettings, build, load_scene, new_plotter, set_overview, set_photo_view, world_to_pixel
+    from gtkit.io.poses import read_poses
+    from gtkit.view.process import SceneProcess
+    from gtkit.view.scene import ViewSettings, load_scene
 
-    scene = load_scene(finished_demo)
-    assert scene.reference_source.startswith("photo priors") and len(scene.reference) == 10
-    p = new_plotter(800, 600)
-    build(p, scene)
-    set_overview(p, scene, "top")
-    p.render()
-    img = p.screenshot(None, return_img=True)
-    apex = world_to_pixel(p, np.array([pose.center for pose, _c in scene.reference.values()]))
-    hits = [_near_colour(img, xy, YELLOW) for xy in apex]
-    assert all(hits), hits
-    p.close()
+    sp = SceneProcess(finished_demo, 800, 600)  # VTK renders in a child process (gtkit.view.process)
+    try:
+        assert sp.info["reference_source"].startswith("photo priors") and sp.info["n_reference_cameras"] == 10
+        sp.overview("top")
+        img = sp.render()
+        apex = sp.world_to_pixel(sp.info["reference_centres"])
+        hits = [_near_colour(img, xy, YELLOW) for xy in apex]
+        assert all(hits), hits
+    finally:
+        sp.close()
     # through a query photo at its localized pose (the demo's localization is within centimetres):
     # the rendered model matches the photo
     name = "queries/seq1/0001_W.jpg"
-    pose = read_poses(finished_demo / "work/localize/poses.txt")[name]
-    cam = read_intrinsics(finished_demo / "cameras.txt")[name]
-    q = new_plotter(cam.width, cam.height)
-    from gtkit.view.scene import SceneData
-
-    build(q, SceneData(model=scene.model, bounds=scene.bounds))  # the model only
-    set_photo_view(q, pose, cam)
-    q.render()
-    view = q.screenshot(None, return_img=True)
-    q.close()
     photo = cv2.cvtColor(cv2.imread(str(finished_demo / "images" / name)), cv2.COLOR_BGR2RGB)
+    sp = SceneProcess(finished_demo, photo.shape[1], photo.shape[0], ViewSettings(layers=("model",)))
+    try:
+        assert sp.photo(name)
+        cam = sp.camera()
+        view = sp.render()
+    finally:
+        sp.close()
+    pose = read_poses(finished_demo / "work/localize/poses.txt")[name]
+    assert np.allclose(cam["position"], pose.center, atol=1e-6)
 
     def g(a):
         return cv2.GaussianBlur(cv2.cvtColor(a, cv2.COLOR_RGB2GRAY).astype(float), (0, 0), 2).ravel()
@@ -106,9 +105,11 @@ def test_annotator_scene_tab_jumps_to_the_selected_photo_and_orbits(finished_dem
     qtbot.keyClick(w, Qt.Key.Key_4, Qt.KeyboardModifier.ControlModifier)
     sc = w.scene3d
     assert sc.photo == "queries/seq1/0002_W.jpg", sc.photo
-    assert w.tabs.currentIndex() == 3 and sc.plotter is not None and sc.open_s is not None
-    pose, _cam = sc.pose_of("queries/seq1/0002_W.jpg")
-    assert np.allclose(sc.plotter.camera.position, pose.center, atol=1e-6)  # looking through the photo
+    assert w.tabs.currentIndex() == 3 and sc.proc is not None and sc.open_s is not None
+    from gtkit.io.poses import read_poses
+
+    pose = read_poses(site / "work/localize/poses.txt")["queries/seq1/0002_W.jpg"]
+    assert np.allclose(sc.proc.camera()["position"], pose.center, atol=1e-6)  # looking through the photo
     first = sc.image().copy()
     assert first.std() > 10
     sc.overview("oblique")
@@ -128,4 +129,11 @@ def test_annotator_scene_tab_jumps_to_the_selected_photo_and_orbits(finished_dem
     assert np.abs(after.astype(int) - before).mean() > 2  # the view turned
     assert len(sc.frame_ms) >= 5
     print(f"3D tab: open {sc.open_s:.2f} s, frame median {np.median(sc.frame_ms):.1f} ms")
+    # gtkit's own renderer (moderngl) is unaffected by VTK (in its child process): the review renders
+    # the model at the localized pose of the next photo, aligned
+    qtbot.keyClick(w, Qt.Key.Key_2, Qt.KeyboardModifier.ControlModifier)
+    qtbot.keyClick(w, Qt.Key.Key_K)
+    rv = w.review
+    assert rv.image is not None and rv._cache[5].misalignment_px < 1.0, rv.image
     w.close()
+    assert sc.proc is None  # the scene process is closed with the window

@@ -15,7 +15,8 @@ What is drawn, all read from the project's files (never ``truth/``):
   ``work/sfm_reference/block.json``), and target tracks (``exports/tracks.csv``).
 
 Rendering uses VTK's EGL window (``VTK_DEFAULT_OPENGL_WINDOW``), so it runs headless like the rest
-of gtkit, and beside gtkit's own EGL renderer in the annotator.
+of gtkit, always in a child process (:mod:`gtkit.view.process`: VTK and gtkit's own moderngl
+renderer must not share a process).
 """
 from __future__ import annotations
 
@@ -50,6 +51,7 @@ class ViewSettings:
     frustum_m: float | None = None    # frustum depth; default 3 % of the site's diagonal
     residual_scale: float = 50.0      # GCP residual vectors drawn this many times longer
     snapshots: tuple[str, ...] = SNAPSHOTS
+    layers: tuple[str, ...] = ("model", "reference", "queries", "gcps", "tracks")  # what is drawn
 
 
 @dataclass
@@ -73,8 +75,8 @@ class SceneData:
 
 
 def _use_egl():
-    """Offscreen VTK renders through EGL, with or without a display: no X display is needed, and in
-    the annotator a GLX context must not follow the EGL one of gtkit's own renderer."""
+    """Offscreen VTK renders through EGL, with or without a display (in its own process, see
+    :mod:`gtkit.view.process`)."""
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 
@@ -241,7 +243,8 @@ def build(plotter, scene: SceneData, settings: ViewSettings | None = None) -> di
     s = settings or ViewSettings()
     actors = {}
     diag = float(np.linalg.norm(np.ptp(scene.bounds, 0))) if scene.bounds is not None else 100.0
-    for k, (pd, tex) in enumerate(scene.model or []):
+    on = set(s.layers)
+    for k, (pd, tex) in enumerate(scene.model if "model" in on and scene.model else []):
         if tex is not None:
             actors[f"model{k}"] = plotter.add_mesh(pd, texture=tex, lighting=False)
         elif "rgb" in pd.point_data:
@@ -249,11 +252,11 @@ def build(plotter, scene: SceneData, settings: ViewSettings | None = None) -> di
         else:
             actors[f"model{k}"] = plotter.add_mesh(pd, color=COLORS["model"])
     depth = s.frustum_m or 0.03 * diag
-    fr = frusta(list(scene.reference.values()), depth)
+    fr = frusta(list(scene.reference.values()), depth) if "reference" in on else None
     if fr is not None:
         actors["reference"] = plotter.add_mesh(fr, color=COLORS["reference"], line_width=2, lighting=False)
     for kind in ("prior", "pseudo_gt", "localized"):
-        centres = scene.queries.get(kind)
+        centres = scene.queries.get(kind) if "queries" in on else None
         if not centres:
             continue
         by_seq: dict[str, list[str]] = {}
@@ -275,7 +278,7 @@ def build(plotter, scene: SceneData, settings: ViewSettings | None = None) -> di
         else:
             actors[kind] = plotter.add_mesh(cloud, color=COLORS[kind], point_size=8 if kind != "prior" else 6,
                                             render_points_as_spheres=True, lighting=False)
-    if scene.gcps:
+    if scene.gcps and "gcps" in on:
         xyz = np.array([g[1] for g in scene.gcps])
         actors["gcp"] = plotter.add_mesh(pv.PolyData(xyz), color=COLORS["gcp"], point_size=14,
                                          render_points_as_spheres=True, lighting=False)
@@ -286,7 +289,7 @@ def build(plotter, scene: SceneData, settings: ViewSettings | None = None) -> di
             lines = pv.PolyData(np.concatenate([pts, pts + d]),
                                 lines=np.array([[2, k, k + len(pts)] for k in range(len(pts))]).ravel())
             actors["gcp_residuals"] = plotter.add_mesh(lines, color=COLORS["residual"], line_width=3, lighting=False)
-    for label, P in scene.tracks.items():
+    for label, P in (scene.tracks.items() if "tracks" in on else ()):
         if len(P) > 1:
             actors[f"track_{label}"] = plotter.add_mesh(pv.lines_from_points(P), color=COLORS["track"], line_width=3,
                                                         lighting=False)
@@ -350,37 +353,42 @@ def world_to_pixel(plotter, X: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def snapshots(project: Project | str | Path, settings: ViewSettings | None = None, out_dir: Path | None = None,
-              orbit_frames: int = 36) -> dict:
-    """Write ``reports/scene_<view>.png`` for each snapshot view; returns the files and timings
-    (load, build, first frame, median frame time while orbiting)."""
+def pose_of(scene: SceneData, name: str | None):
+    """The best pose the project has for a photo (pseudo-GT, localized, reference block, prior) and
+    its camera, or (None, None)."""
+    if not name:
+        return None, None
+    for kind in ("pseudo_gt", "localized", "prior"):
+        if name in scene.query_poses.get(kind, {}):
+            return scene.query_poses[kind][name], scene.cameras.get(name)
+    return scene.reference.get(name, (None, None))
+
+
+def describe(scene: SceneData) -> dict:
+    return {"triangles": [scene.n_triangles_model, scene.n_triangles_shown],
+            "n_reference_cameras": len(scene.reference), "reference_source": scene.reference_source,
+            "reference_centres": [p.center.tolist() for p, _c in scene.reference.values()],
+            "trajectories": {k: len(v) for k, v in scene.queries.items()}, "error_source": scene.error_source,
+            "n_gcps": len(scene.gcps), "n_tracks": len(scene.tracks),
+            "seconds": {k: round(v, 3) for k, v in scene.seconds.items()}}
+
+
+def write_snapshots(plotter, scene: SceneData, out_dir: Path, which=SNAPSHOTS, orbit_frames: int = 36) -> dict:
+    """Write ``scene_<view>.png`` for each view into ``out_dir``; then orbit the oblique view and
+    time the frames (render only, and render + read-back)."""
     import resource
 
-    project = project if isinstance(project, Project) else Project.load(project)
-    s = settings or ViewSettings()
-    out_dir = Path(out_dir) if out_dir else project.paths.reports
-    t0 = time.perf_counter()
-    scene = load_scene(project, s)
-    t_load = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    plotter = new_plotter(s.width, s.height)
-    build(plotter, scene, s)
-    set_overview(plotter, scene, "oblique")
-    t_build = time.perf_counter() - t1
-    t2 = time.perf_counter()
-    plotter.screenshot(None, return_img=True)  # the first frame (pyvista renders nothing before it)
-    t_first = time.perf_counter() - t2
-    files = {}
     from ..io.atomic import atomic_path
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    for which in s.snapshots:
-        set_overview(plotter, scene, which)
+    files = {}
+    for w in which:
+        set_overview(plotter, scene, w)
         plotter.render()  # pyvista's screenshot reads the last frame; it does not render
-        with atomic_path(out_dir / f"scene_{which}.png") as tmp:
+        with atomic_path(out_dir / f"scene_{w}.png") as tmp:
             plotter.screenshot(str(tmp) + ".png")
             os.replace(str(tmp) + ".png", tmp)
-        files[which] = out_dir / f"scene_{which}.png"
+        files[w] = str(out_dir / f"scene_{w}.png")
     set_overview(plotter, scene, "oblique")
     frame, frame_rb = [], []
     for _ in range(orbit_frames):  # orbiting: the camera turns about the scene's vertical axis
@@ -391,15 +399,28 @@ def snapshots(project: Project | str | Path, settings: ViewSettings | None = Non
         t = time.perf_counter()
         plotter.screenshot(None, return_img=True)
         frame_rb.append(frame[-1] + time.perf_counter() - t)
-    plotter.close()
-    info = {"files": {k: str(v) for k, v in files.items()}, "open_s": round(t_load + t_build + t_first, 3),
-            "load_s": round(t_load, 3), "build_s": round(t_build, 3), "first_frame_s": round(t_first, 3),
+    return {"files": files,
             "frame_ms_median": round(1000 * float(np.median(frame)), 2) if frame else None,
             "frame_with_readback_ms_median": round(1000 * float(np.median(frame_rb)), 2) if frame_rb else None,
-            "triangles": [scene.n_triangles_model, scene.n_triangles_shown],
-            "n_reference_cameras": len(scene.reference), "reference_source": scene.reference_source,
-            "trajectories": {k: len(v) for k, v in scene.queries.items()}, "error_source": scene.error_source,
-            "n_gcps": len(scene.gcps), "n_tracks": len(scene.tracks),
-            "max_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-            "seconds": {k: round(v, 3) for k, v in scene.seconds.items()}}
-    return info
+            "max_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+
+
+def snapshots(project: Project | str | Path, settings: ViewSettings | None = None, out_dir: Path | None = None,
+              orbit_frames: int = 36) -> dict:
+    """Write ``reports/scene_<view>.png`` for each snapshot view (rendered in a child process, see
+    :mod:`gtkit.view.process`); returns the files and timings: open (process start, load, build,
+    first frame), median frame time while orbiting, the renderer process's peak memory."""
+    from .process import SceneProcess
+
+    project = project if isinstance(project, Project) else Project.load(project)
+    s = settings or ViewSettings()
+    out_dir = Path(out_dir) if out_dir else project.paths.reports
+    sp = SceneProcess(project.paths.root, s.width, s.height, s)
+    try:
+        shots = sp.snapshots(out_dir.absolute(), s.snapshots, orbit_frames)
+    finally:
+        sp.close()
+    info = {k: v for k, v in sp.info.items() if k != "reference_centres"}
+    return {"files": shots["files"], "open_s": round(sp.open_s, 3), **{k: round(info.pop(k), 3) for k in
+            ("load_s", "build_s", "first_frame_s")}, **{k: shots[k] for k in ("frame_ms_median",
+            "frame_with_readback_ms_median", "max_rss_mb")}, **info}
