@@ -67,6 +67,8 @@ from PySide6.QtWidgets import QApplication
 from gui.app import make_app
 from gui.main_window import MainWindow
 app = make_app()
+from pathlib import Path
+Path(sys.argv[1], "work/annotate/session.json").unlink(missing_ok=True)  # open on the tie-point tab
 w = MainWindow(sys.argv[1]); w.resize(1500, 900); w.show(); QApplication.processEvents()
 t = time.perf_counter(); w.tabs.setCurrentIndex(3); QApplication.processEvents(); tab_s = time.perf_counter() - t
 sc = w.scene3d

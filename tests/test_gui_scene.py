@@ -44,7 +44,7 @@ def test_gtkit_view_writes_snapshots(finished_demo, tmp_path, capsys):
     assert not (finished_demo / "reports" / "scene_top.png").exists()  # --out respected
 
 
-def test_scene_draws_cameras_where_they_are_and_looks_through_photos(finished_demo):
+def test_scene_draws_cameras_where_they_are_and_looks_through_photos(finished_demo, tmp_path):
     import cv2
 
     from gtkit.io.poses import read_poses
@@ -82,10 +82,16 @@ def test_scene_draws_cameras_where_they_are_and_looks_through_photos(finished_de
     shifted = np.corrcoef(g(np.roll(view, 8, axis=1)), g(photo))[0, 1]
     assert corr > 0.8 and corr - shifted > 0.1, (corr, shifted)
     # decimated: at most the asked triangles, colours kept (sampled from the texture)
-    small = load_scene(finished_demo, ViewSettings(max_triangles=300))
+    site = tmp_path / "site"
+    shutil.copytree(finished_demo, site)
+    small = load_scene(site, ViewSettings(max_triangles=300))
     assert small.n_triangles_model == 652 and small.n_triangles_shown <= 300
     rgb = small.model[0][0].point_data["rgb"]
     assert rgb.std(axis=0).mean() > 10
+    # ... and cached in work/view/: the second load reads the same mesh from there
+    assert len(list((site / "work/view").glob("model_*.npz"))) == 1
+    again = load_scene(site, ViewSettings(max_triangles=300))
+    assert np.array_equal(again.model[0][0].point_data["rgb"], rgb) and again.n_triangles_shown == small.n_triangles_shown
 
 
 def test_annotator_scene_tab_jumps_to_the_selected_photo_and_orbits(finished_demo, tmp_path, qtbot):

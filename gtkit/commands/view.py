@@ -7,7 +7,8 @@ def register(sub):
                        "snapshots in reports/ (offscreen, pyvista)")
     p.add_argument("project")
     p.add_argument("--size", default="1280x800", help="snapshot size WxH (default 1280x800)")
-    p.add_argument("--max-triangles", type=int, default=150_000, help="decimate the model to at most this many")
+    p.add_argument("--max-triangles", type=int, default=None,
+                   help="decimate the model to at most this many triangles (default 60,000; cached in work/view/)")
     p.add_argument("--out", default=None, help="folder for the PNGs (default DIR/reports)")
     p.set_defaults(func=run)
 
@@ -22,6 +23,9 @@ def run(args):
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise GtkitError(f"--size must be WxH, e.g. 1280x800, got {args.size!r}") from None
-    info = snapshots(args.project, ViewSettings(max_triangles=args.max_triangles, width=w, height=h), args.out)
+    s = ViewSettings(width=w, height=h)
+    if args.max_triangles is not None:
+        s.max_triangles = args.max_triangles
+    info = snapshots(args.project, s, args.out)
     print(json.dumps(info, indent=1))
     return 0

@@ -45,7 +45,8 @@ SNAPSHOTS = ("oblique", "top")
 
 @dataclass
 class ViewSettings:
-    max_triangles: int = 150_000      # the model is decimated to at most this many triangles
+    max_triangles: int = 60_000       # the model is decimated to at most this many triangles (frame time
+                                      # on CPU rendering grows with them; 60k at 1280x800: see docs/view.md)
     width: int = 1280                 # snapshot size, pixels
     height: int = 800
     frustum_m: float | None = None    # frustum depth; default 3 % of the site's diagonal
@@ -93,6 +94,21 @@ def _model_polydata(project: Project, max_triangles: int):
         path = reference_model(project.paths)
     except GtkitError:
         return None, 0, 0
+    # a big model is decimated once and cached in work/view/ (decoding its textures is most of the
+    # time to open it)
+    from ..io.atomic import atomic_path
+    from ..project import file_fingerprint, settings_key
+
+    files = sorted(f for f in Path(path).parent.iterdir() if f.is_file()) if Path(path).is_file() else [Path(path)]
+    key = settings_key({"files": {f.name: file_fingerprint(f) for f in files}, "max_triangles": max_triangles,
+                        "origin": list(project.frame.origin), "version": 1})
+    cache = project.paths.stage("view") / f"model_{key}.npz"
+    if cache.is_file():
+        with np.load(cache) as z:
+            verts, faces, rgb, n = z["vertices"].astype(np.float64), z["faces"], z["rgb"], int(z["n_in"])
+        pd = pv.PolyData(verts, np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel())
+        pd.point_data["rgb"] = rgb
+        return [(pd, None)], n, len(faces)
     mesh = load_model(path, project.frame)
     n = mesh.n_triangles
     if n <= max_triangles:
@@ -132,7 +148,12 @@ def _model_polydata(project: Project, max_triangles: int):
     m = m.simplify_quadric_decimation(max_triangles)
     verts, faces = np.asarray(m.vertices), np.asarray(m.triangles)
     pd = pv.PolyData(verts, np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel())
-    pd.point_data["rgb"] = (np.clip(np.asarray(m.vertex_colors), 0, 1) * 255).astype(np.uint8)
+    rgb = (np.clip(np.asarray(m.vertex_colors), 0, 1) * 255).astype(np.uint8)
+    pd.point_data["rgb"] = rgb
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(cache) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, vertices=verts.astype(np.float32), faces=faces.astype(np.int32), rgb=rgb, n_in=n)
     return [(pd, None)], n, len(faces)
 
 
