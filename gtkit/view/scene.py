@@ -257,6 +257,20 @@ def frusta(cams: list[tuple[Pose, Camera | None]], depth: float) -> "object":
     return pv.PolyData(np.array(pts), lines=np.array(lines).ravel())
 
 
+def _frustum_depth(centres, diag: float) -> float:
+    """Frusta a third of the typical spacing between camera stations (five-eye cameras share one),
+    at most 3 % of the scene's diagonal: a dense block stays readable."""
+    if len(centres) < 2:
+        return 0.03 * diag
+    from scipy.spatial import cKDTree
+
+    C = np.unique(np.round(np.asarray(centres), 1), axis=0)
+    if len(C) < 2:
+        return 0.03 * diag
+    d, _ = cKDTree(C).query(C, k=2)
+    return float(np.clip(np.median(d[:, 1]) / 3, 0.002 * diag, 0.03 * diag))
+
+
 def build(plotter, scene: SceneData, settings: ViewSettings | None = None) -> dict:
     """Add the scene's actors to a pyvista plotter; returns the actors by name."""
     import pyvista as pv
@@ -272,7 +286,7 @@ def build(plotter, scene: SceneData, settings: ViewSettings | None = None) -> di
             actors[f"model{k}"] = plotter.add_mesh(pd, scalars="rgb", rgb=True, lighting=False)
         else:
             actors[f"model{k}"] = plotter.add_mesh(pd, color=COLORS["model"])
-    depth = s.frustum_m or 0.03 * diag
+    depth = s.frustum_m or _frustum_depth([p.center for p, _c in scene.reference.values()], diag)
     fr = frusta(list(scene.reference.values()), depth) if "reference" in on else None
     if fr is not None:
         actors["reference"] = plotter.add_mesh(fr, color=COLORS["reference"], line_width=2, lighting=False)
