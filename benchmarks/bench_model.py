@@ -31,22 +31,20 @@ def _row(name, m):
             f"{a['median']:.3f} | {a['p95']:.3f} | {e['median']:.3f} / {e['p95']:.2f} | {m['bias']:+.3f} |")
 
 
-def _overlays(root: Path, model: Path, tmp: Path) -> float | None:
-    """Median misalignment (px) of the wide query photos at their TRUE poses over ``model``."""
-    from gtkit.render.overlay import OverlaySettings, write_overlays
+def _overlays(root: Path, model: Path) -> float:
+    """Median misalignment (full-resolution px) of the wide query photos at their TRUE poses over ``model``."""
+    import numpy as np
 
-    proj = Project.load(root)
-    scratch = Project.create(tmp, proj.frame, "overlay-check")
-    (tmp / "images").symlink_to((root / "images").resolve(), target_is_directory=True)
-    (tmp / "model").mkdir()
-    for f in model.parent.glob(model.stem + "*"):
-        (tmp / "model" / f.name).symlink_to(f.resolve())
-    (tmp / "model" / "reference.obj").exists() or (tmp / "model" / "reference.obj").symlink_to(model.resolve())
+    from gtkit.render.overlay import OverlayScene, alignment
+
     truth_poses = root / "truth" / "poses.txt"
-    names = sorted(line.split()[0] for line in truth_poses.read_text().splitlines()
-                   if line and not line.startswith("#") and line.split()[0].endswith("_W.jpg"))
-    s = write_overlays(scratch.paths.root, truth_poses, tmp / "ov", OverlaySettings(modes=("blend",)), images=names)
-    return s["median_misalignment_px"]
+    scene = OverlayScene(Project.load(root), truth_poses, model_path=model)
+    names = [n for n in scene.images() if n.endswith("_W.jpg")]
+    mis = []
+    for n in names:
+        photo, rgb, valid, s = scene.render(n, 1024)
+        mis.append(alignment(photo, rgb, valid, scale=s).misalignment_px)
+    return float(np.nanmedian(mis))
 
 
 def main(argv=None):
@@ -96,12 +94,9 @@ def main(argv=None):
         print(f"\nbuilt - delivered: median {diff['median']:+.3f} m, median |d| {diff['median_abs']:.3f} m, "
               f"p95 |d| {diff['p95_abs']:.3f} m over {diff['cells']} cells ({diff['out']})")
     if a.overlays:
-        import tempfile
-
-        with tempfile.TemporaryDirectory() as tmp:
-            ov = {"built": _overlays(root, built, Path(tmp) / "b")}
-            if a.delivered:
-                ov["delivered"] = _overlays(root, Path(a.delivered), Path(tmp) / "d")
+        ov = {"built": _overlays(root, built)}
+        if a.delivered:
+            ov["delivered"] = _overlays(root, Path(a.delivered))
         print("overlay median misalignment at the true query poses (px): " + json.dumps(ov))
     out = root / "reports" / "bench_model.json"
     out.parent.mkdir(parents=True, exist_ok=True)
