@@ -183,3 +183,31 @@ def test_block_without_georegistration_is_refused(tmp_path):
         build(proj)
     msg = str(e.value)
     assert "not georegistered (fewer than 3 GPS positions)" in msg and "block.json" in msg and "\n" not in msg
+
+
+def test_built_model_never_replaces_a_delivered_one_unasked(tmp_path):
+    """With a delivered model/reference.obj the built model goes to model/built/; --use swaps them."""
+    from gtkit.export.sources import reference_model
+    from gtkit.geo import GeoFrame
+    from gtkit.io.mesh import Mesh, MeshPart, load_model, write_obj, write_offset_sidecar
+    from gtkit.model.build import _write_model
+
+    frame = GeoFrame("EPSG:32650", (500000.0, 3300000.0, 10.0))
+    proj = Project.create(tmp_path / "site", frame)
+    tri = np.array([[0, 1, 2]])
+    delivered = Mesh([MeshPart(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), tri, colors=np.zeros((3, 3), np.uint8))])
+    built = Mesh([MeshPart(np.array([[0, 0, 5], [1, 0, 5], [0, 1, 5.0]]), tri, colors=np.zeros((3, 3), np.uint8))])
+    write_obj(proj.paths.model / "reference.obj", delivered)
+    write_offset_sidecar(proj.paths.model / "reference.obj", frame.crs_spec, frame.origin)
+
+    out = _write_model(proj, built, None)
+    assert out == proj.paths.model / "built" / "reference.obj"
+    assert Project.load(proj.paths.root).config["model"]["source"] == "delivered"
+    assert reference_model(proj.paths) == proj.paths.model / "reference.obj"
+    assert load_model(reference_model(proj.paths), frame).bounds()[0, 2] == 0.0      # still the delivered one
+
+    out = _write_model(proj, built, True)
+    assert out == proj.paths.model / "reference.obj"
+    assert Project.load(proj.paths.root).config["model"]["source"] == "built"
+    assert load_model(reference_model(proj.paths), frame).bounds()[0, 2] == 5.0      # the built one now
+    assert load_model(proj.paths.model / "delivered" / "reference.obj", frame).bounds()[0, 2] == 0.0
