@@ -111,16 +111,15 @@ def pair_depth(a: View, b: View, img_a: np.ndarray, img_b: np.ndarray, settings:
 def combine_pairs(depths: list[np.ndarray], settings: ModelSettings) -> np.ndarray:
     """Per pixel: the mean of the pair depths that agree with their median (NaN where fewer than
     ``min_pair_agree`` agree)."""
-    D = np.stack(depths)
-    with np.errstate(invalid="ignore"):
-        import warnings
+    import warnings
 
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(D, axis=0)
+    D = np.stack(depths)
+    with warnings.catch_warnings(), np.errstate(invalid="ignore"):
+        warnings.simplefilter("ignore", RuntimeWarning)       # all-NaN pixels
+        med = np.nanmedian(D, axis=0)
         agree = np.abs(D - med) <= settings.pair_agree * med
-        cnt = agree.sum(0)
-        mean = np.where(agree, D, 0).sum(0) / np.maximum(cnt, 1)
+    cnt = agree.sum(0)
+    mean = np.where(agree, D, 0).sum(0) / np.maximum(cnt, 1)
     return np.where(cnt >= settings.min_pair_agree, mean, np.nan).astype(np.float32)
 
 
