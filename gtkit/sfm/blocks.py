@@ -227,15 +227,20 @@ def merge_models(models: list[pycolmap.Reconstruction]) -> pycolmap.Reconstructi
         for cid, cam in m.cameras.items():
             if not base.exists_camera(cid):
                 base.add_camera_with_trivial_rig(cam)
+        added = set()
         for iid, im in m.images.items():
-            if not im.has_pose or base.exists_image(iid):
+            if not im.has_pose or base.exists_image(iid):  # models may share a few photos: keep the first's
                 continue
             kp = np.array([p.xy for p in im.points2D]).reshape(-1, 2)
             base.add_image_with_trivial_frame(pycolmap.Image(name=im.name, keypoints=kp, camera_id=im.camera_id,
                                                              image_id=iid), im.cam_from_world())
+            added.add(iid)
         for p in m.points3D.values():
+            els = [el for el in p.track.elements if el.image_id in added]
+            if len(els) < 2:
+                continue
             track = pycolmap.Track()
-            for el in p.track.elements:
+            for el in els:
                 track.add_element(el.image_id, el.point2D_idx)
             base.add_point3D(p.xyz, track, p.color)
     return base
@@ -371,6 +376,14 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     models_info = [{"model": k, "n_registered": r.num_reg_images(), "n_points3D": r.num_points3D(),
                     "photos": sorted(im.name for im in r.images.values() if im.has_pose)} for k, r in enumerate(models)]
     kept = [0]
+    # the mapper may rebuild part of the block as another model (up to 20 shared photos): a model
+    # whose photos are all in a larger one adds nothing
+    duplicate = {}
+    for k, info in enumerate(models_info):
+        for j in range(k):
+            if j not in duplicate and set(info["photos"]) <= set(models_info[j]["photos"]):
+                duplicate[k] = j
+                break
     if georegister_block:
         gcps = read_gcp_list(P.gcp_list, project.frame) if P.gcp_list.is_file() else []
         for g in gcps:  # ODM names photos by file name; gtkit by path under images/
@@ -381,6 +394,8 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
             summary["gcp_clicks_outside_block"] = check_gcp_clicks(gcps, names)
         geo_models = []
         for k, r in enumerate(models):
+            if k in duplicate:
+                continue
             try:
                 g = georegister(r, positions, gcps, settings.georegister, accuracy)
                 models_info[k]["georegistration"] = {kk: g[kk] for kk in ("n_inliers", "rmse_m", "gcp_median_err_m")}
@@ -402,7 +417,9 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         summary["georegistration"]["merged_models"] = kept
     for k, info in enumerate(models_info):
         info["kept"] = k in kept
-        if k not in kept:
+        if k in duplicate:
+            info["reason"] = f"its photos are all in model {duplicate[k]}"
+        elif k not in kept:
             info["reason"] = ("not placed in the world: " + info.get("georegistration", {}).get("error", "")
                               if georegister_block else "not the largest model of an unregistered block")
     t_geo = time.time()

@@ -69,23 +69,29 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
     poses = model_poses(rec)
     gps_accuracy = gps_accuracy or {}
     checks = {g.name for g in gcps if g.check} | set(settings.checkpoints)
-    src, tgt, kinds, names, th, adaptive, w = [], [], [], [], [], [], []
+    # per point: threshold cap, floor, adaptive. Without a stated accuracy GPS keeps the fixed
+    # gps_inlier_m and GCPs adapt to their scatter (<= gcp_max_inlier_m); with one, the threshold
+    # adapts between 3 sigma of the stated accuracy and the cap, since the reconstruction's own
+    # error (centimetres) can exceed a surveyed position's millimetres.
+    src, tgt, kinds, names, cap, floor, adaptive = [], [], [], [], [], [], []
     if "gps" in settings.use:
         for n, p in poses.items():
             if n in gps and np.all(np.isfinite(gps[n])):
                 acc = gps_accuracy.get(n)
                 src.append(p.center), tgt.append(gps[n]), kinds.append("gps"), names.append(n)
-                th.append(3.0 * acc if acc else settings.gps_inlier_m), adaptive.append(False)
-                w.append(1.0 / (acc or settings.gps_inlier_m / 3.0) ** 2)
+                cap.append(max(settings.gps_inlier_m, 3.0 * acc) if acc else settings.gps_inlier_m)
+                floor.append(3.0 * acc if acc else settings.gps_inlier_m)
+                adaptive.append(bool(acc))
     gcp_sfm = triangulate_gcps(rec, gcps, settings.gcp_max_px) if gcps else {}
     control = [g for g in gcps if g.name not in checks]
     usable = [g for g in control if gcp_sfm[g.name]["xyz"] is not None]
     if "gcp" in settings.use:
+        acc = settings.gcp_accuracy_m
         for g in usable:
             src.append(gcp_sfm[g.name]["xyz"]), tgt.append(g.xyz), kinds.append("gcp"), names.append(g.name)
-            acc = settings.gcp_accuracy_m
-            th.append(3.0 * acc if acc else settings.gcp_max_inlier_m), adaptive.append(acc is None)
-            w.append(1.0 / (acc or 0.05) ** 2)
+            cap.append(max(settings.gcp_max_inlier_m, 3.0 * acc) if acc else settings.gcp_max_inlier_m)
+            floor.append(3.0 * acc if acc else 0.05)
+            adaptive.append(True)
     n_gps = kinds.count("gps")
     if n_gps < 3 and "gcp" in settings.use and control:
         # the GCPs carry the georegistration: say exactly which cannot be used and why
@@ -99,13 +105,12 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
                                     + "): the rotation about their line is undetermined; add a GCP off that line")
     if not src:
         raise RegistrationError(f"no GPS positions or triangulated GCPs to georegister with (use={settings.use})")
-    stated = bool(gps_accuracy) or settings.gcp_accuracy_m is not None
-    fit: Sim3Fit = robust_sim3(np.array(src), np.array(tgt), np.array(th), what="georegistration points",
-                               weights=np.array(w) if stated else None, adaptive=np.array(adaptive))
+    fit: Sim3Fit = robust_sim3(np.array(src), np.array(tgt), np.array(cap), what="georegistration points",
+                               adaptive=np.array(adaptive), floors=np.array(floor), groups=np.array(kinds))
     kinds = np.array(kinds)
     sigmas = None
-    if not stated and len(set(kinds[fit.inliers])) > 1 and fit.inliers.sum() >= 4:
-        # GPS and GCPs of unknown accuracy: each group weighted by its own scatter
+    if len(set(kinds[fit.inliers])) > 1 and fit.inliers.sum() >= 4:
+        # GPS and GCPs together: each group weighted by its own scatter
         sim, sigmas = group_weighted_refit(np.array(src), np.array(tgt), fit.inliers, kinds)
         r = np.linalg.norm(sim.apply(np.array(src)) - np.array(tgt), axis=1)
         fit = Sim3Fit(pycolmap.Sim3d(sim.scale, pycolmap.Rotation3d(sim.R), sim.t), fit.inliers, r,
@@ -118,7 +123,8 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
               "gps_residual_median_m": float(np.median(fit.residuals_m[kinds == "gps"])) if (kinds == "gps").any() else None,
               "gcp_threshold_m": (float(np.median(fit.thresholds_m[kinds == "gcp"]))
                                   if fit.thresholds_m is not None and (kinds == "gcp").any() else None),
-              "weighted_by_stated_accuracy": stated,
+              "gps_threshold_m": (float(np.median(fit.thresholds_m[kinds == "gps"]))
+                                  if fit.thresholds_m is not None and (kinds == "gps").any() else None),
               "group_sigma_m": sigmas,
               "outliers": [n for n, ok in zip(names, fit.inliers) if not ok]}
     gres = {}

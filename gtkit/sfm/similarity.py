@@ -67,10 +67,12 @@ class RobustFit:
 
 
 def lo_ransac_similarity(src: np.ndarray, tgt: np.ndarray, thresholds: np.ndarray, *, weights=None,
-                         adaptive: np.ndarray | None = None, max_trials: int = 2000, seed: int = 0) -> RobustFit | None:
+                         adaptive: np.ndarray | None = None, floors: np.ndarray | None = None,
+                         groups: np.ndarray | None = None, max_trials: int = 2000, seed: int = 0) -> RobustFit | None:
     """LO-RANSAC similarity. ``thresholds``: inlier distance per point. ``adaptive`` (bool per point):
-    those points' threshold is re-estimated from the inliers' own scatter (3 x 1.4826 x the median
-    distance, never above the given threshold, never under 5 cm) — survey points of unknown accuracy.
+    those points' threshold is re-estimated from their group's inliers' own scatter (3 x 1.4826 x
+    the median distance, within [``floors``, ``thresholds``]; floors default 5 cm) — survey points
+    whose accuracy is unknown, or stated but smaller than the reconstruction's own error.
     Minimal sets: every triple when there are few points, else ``max_trials`` random triples."""
     src, tgt = np.asarray(src, float), np.asarray(tgt, float)
     th = np.asarray(thresholds, float).copy()
@@ -111,11 +113,16 @@ def lo_ransac_similarity(src: np.ndarray, tgt: np.ndarray, thresholds: np.ndarra
             break
         sim = refit
         r = np.linalg.norm(sim.apply(src) - tgt, axis=1)
-        if adaptive is not None and np.any(adaptive & inl):
-            a = adaptive & inl
+        if adaptive is not None:
             # 3 x 1.4826 x median distance: lenient on purpose (few points, metre-grade survey data
-            # must be kept and reported), yet a GCP 10x farther off than the others is dropped
-            th = np.where(adaptive, np.clip(3.0 * 1.4826 * np.median(r[a]), 0.05, thresholds), th)
+            # must be kept and reported), yet a point 10x farther off than its group is dropped
+            grp = np.zeros(n, int) if groups is None else np.asarray(groups)
+            lo = np.full(n, 0.05) if floors is None else np.asarray(floors, float)
+            for g in np.unique(grp):
+                a = adaptive & inl & (grp == g)
+                if a.any():
+                    sel = adaptive & (grp == g)
+                    th[sel] = np.clip(3.0 * 1.4826 * np.median(r[a]), lo[sel], np.asarray(thresholds, float)[sel])
         new = r <= th
         if np.array_equal(new, inl):
             break

@@ -8,6 +8,8 @@ no focal length anywhere, GCPs surveyed without heights. Each edits a copy in pl
 - ``flat-gcps``: every GCP of ``gcp_list.txt`` at one height (their mean), as in deliveries whose
   heights were never surveyed.
 - ``checkpoints``: every other GCP marked ``check`` in ``gcp_list.txt``.
+- ``survey-geo``: a ``geo.txt`` of the reference photos' true camera centres with 5 mm accuracy
+  columns, as public benchmark sets with surveyed camera positions ship (combine with ``no-gps``).
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from pathlib import Path
 
 from PIL import Image
 
-VARIANTS = ("no-gps", "no-focal", "flat-gcps", "checkpoints")
+VARIANTS = ("no-gps", "no-focal", "flat-gcps", "checkpoints", "survey-geo")
 _FOCAL_TAGS = (0x920A, 0xA405)  # FocalLength, FocalLengthIn35mmFilm (Exif sub-IFD)
 _GPS_IFD = 0x8825
 
@@ -93,5 +95,15 @@ def apply_variant(root: str | Path, name: str) -> None:
                 if r[6] in checks:
                     r[7:] = ["check"]
         f.write_text(lines[0] + "\n" + "\n".join(" ".join(r) for r in rows) + "\n")
+    elif name == "survey-geo":
+        from ..io.poses import read_poses
+        from ..project import Project
+
+        proj = Project.load(root)
+        truth = read_poses(root / "truth" / "poses.txt")
+        rows = [proj.frame.local_to_crs(p.center) for n, p in sorted(truth.items()) if n.startswith("reference/")]
+        names = [n for n in sorted(truth) if n.startswith("reference/")]
+        (root / "geo.txt").write_text(proj.frame.crs_spec + "\n" + "".join(
+            f"{n} {x:.4f} {y:.4f} {z:.4f} 0 0 0 0.005 0.005\n" for n, (x, y, z) in zip(names, rows)))
     else:
         raise ValueError(f"unknown sample variant {name!r} (known: {', '.join(VARIANTS)})")
