@@ -16,7 +16,7 @@ class ModelSettings:
     max_disparities: int = 384        # SGBM search range cap (px); the range comes from the sparse points
     block_size: int = 5               # SGBM matching block (px)
     pair_agree: float = 0.01          # relative depth agreement between pairs / between photos
-    min_pair_agree: int = 2           # pairs that must agree on a pixel's depth
+    min_pair_agree: int = 1           # pairs that must agree on a pixel's depth (fusion checks it against other photos)
     min_view_agree: int = 1           # other photos' depth maps that must agree at fusion
     region_margin: float = 0.5        # model the camera centres' box grown by this x the median scene depth
     fusion_stride: int = 2            # back-project every n-th pixel of each depth map
