@@ -22,6 +22,6 @@ class ModelSettings:
     fusion_stride: int = 2            # back-project every n-th pixel of each depth map
     voxel_m: float = 0.25             # fused points are averaged per voxel of this size
     poisson_depth: int = 0            # octree depth of the Poisson surface (0: cells of about 2 voxels)
-    trim_m: float = 2.0               # surface farther than this from every fused point is cut away
+    trim_m: float = 3.0               # surface farther than this from every fused point is cut away
     max_triangles: int = 600_000      # simplification budget (pymeshlab quadric edge collapse)
     texture_size: int = 1024          # px, longest side of the photos the texture is cut from
