@@ -49,7 +49,7 @@ def run_one(preset: str, seed: int, variant: str, code: Path, work: Path) -> dic
     proj = work / f"{preset}_{seed}_{variant}"
     shutil.rmtree(proj, ignore_errors=True)
     py = [sys.executable, "-m", "gtkit.cli"]
-    subprocess.run(py + ["sample", "create", str(proj), "--preset", preset, "--seed", str(seed)], env=env,
+    subprocess.run(py + ["sample", "create", str(proj), "--preset", preset, "--seed", str(seed)], env=env, cwd=code,
                    check=True, capture_output=True)
     if variant != "base":
         sys.path.insert(0, str(ROOT))
@@ -58,7 +58,8 @@ def run_one(preset: str, seed: int, variant: str, code: Path, work: Path) -> dic
         for v in variant.split("+"):
             apply_variant(proj, v)
     t = time.time()
-    r = subprocess.run(py + ["sfm", str(proj), "--block", "reference"], env=env, capture_output=True, text=True)
+    r = subprocess.run(py + ["sfm", str(proj), "--block", "reference"], env=env, capture_output=True, text=True,
+                       cwd=code)  # python -m puts the working folder first on sys.path
     sec = time.time() - t
     out = evaluate(proj) if (proj / "work/sfm_reference/block.json").is_file() else {"error": r.stderr.strip()[-200:]}
     if r.returncode and not out.get("error"):
