@@ -108,7 +108,9 @@ def evaluate(project: Project | str | Path, ablation: str = "default", with_retr
     rep["queries"] = per_q
     jpath, mpath = _report_paths(project, ablation)
     write_json(jpath, rep)
-    write_text(mpath, markdown(rep))
+    from ..sfm.report import scene_links
+
+    write_text(mpath, markdown(rep) + "\n".join(scene_links(mpath.parent)) + "\n")
     return rep
 
 

@@ -101,6 +101,12 @@ def run(project: Project | str | Path) -> dict:
     return write(project, collect(project))
 
 
+def scene_links(folder: Path) -> list[str]:
+    """The 3D scene snapshots ``gtkit view`` wrote into ``folder`` (reports/), as markdown images."""
+    shots = [p.name for p in sorted(Path(folder).glob("scene_*.png"))]
+    return ["", "## 3D scene (`gtkit view`)", ""] + [f"![{n}]({n})" for n in shots] if shots else []
+
+
 def _markdown(rep: dict, folder: Path, checks: dict) -> str:
     L = [f"# Pseudo-GT report: {rep['project']}", ""]
     L += ["| figure | value |", "|---|---|",
@@ -160,4 +166,5 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
             L.append(f"| {n} | {'yes' if e.get('registered') else 'NO'} | {_fmt(e.get('sigma_pos_m'))} | "
                      f"{_fmt(e.get('sigma_rot_deg'))} | " + "".join(f"{_fmt(e.get(k))} | " for k, _h in cols)
                      + f"{e.get('review', '')} |")
+    L += scene_links(folder)
     return "\n".join(L) + "\n"
