@@ -17,22 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from gtkit.errors import GtkitError
-from gtkit.io.exif import read_photo_meta
+from gtkit.io.exif import prior_pose
 from gtkit.pose import Pose
 
 log = logging.getLogger(__name__)
-
-
-def prior_pose(path: Path, frame) -> Pose | None:
-    """The pose the photo's metadata claims (GPS position, gimbal attitude), or None."""
-    try:
-        m = read_photo_meta(path)
-    except GtkitError:
-        return None
-    if not (m.has_gps and m.has_gimbal) or m.altitude is None:
-        return None
-    C = frame.wgs84_to_local(m.lon, m.lat, m.altitude)
-    return Pose.from_dji(m.gimbal_yaw, m.gimbal_pitch, m.gimbal_roll, C)
 
 
 def ground_height(paths, frame) -> float:

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import GtkitError
+from ..io.exif import prior_pose
 from ..io.poses import read_intrinsics, read_poses
 from ..pose import Pose
 from ..project import Project
@@ -157,18 +158,6 @@ def _model_polydata(project: Project, max_triangles: int):
     return [(pd, None)], n, len(faces)
 
 
-def _prior(path: Path, frame) -> Pose | None:
-    from ..io.exif import read_photo_meta
-
-    try:
-        m = read_photo_meta(path)
-    except GtkitError:
-        return None
-    if not (m.has_gps and m.has_gimbal) or m.altitude is None:
-        return None
-    return Pose.from_dji(m.gimbal_yaw, m.gimbal_pitch, m.gimbal_roll, frame.wgs84_to_local(m.lon, m.lat, m.altitude))
-
-
 def _poses(path: Path) -> dict[str, Pose]:
     return read_poses(path) if path.is_file() else {}
 
@@ -188,10 +177,10 @@ def load_scene(project: Project | str | Path, settings: ViewSettings | None = No
     ref_names = sorted(str(f.relative_to(P.images)) for f in P.reference_images.rglob("*")
                        if f.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif", ".tiff")) if P.reference_images.is_dir() else []
     if not refs:
-        refs = {n: p for n in ref_names if (p := _prior(P.images / n, project.frame)) is not None}
+        refs = {n: p for n in ref_names if (p := prior_pose(P.images / n, project.frame)) is not None}
     out.reference = {n: (p, out.cameras.get(n)) for n, p in refs.items()}
     q_names = sorted(str(f.relative_to(P.images)) for f in P.query_images.rglob("*_W.*")) if P.query_images.is_dir() else []
-    priors = {n: p for n in q_names if (p := _prior(P.images / n, project.frame)) is not None}
+    priors = {n: p for n in q_names if (p := prior_pose(P.images / n, project.frame)) is not None}
     kinds = {"prior": priors,
              "pseudo_gt": {n: p for n, p in _poses(P.stage("register") / "poses.txt").items() if n.startswith("queries/")},
              "localized": _poses(P.stage("localize") / "poses.txt")}
