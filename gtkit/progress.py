@@ -5,9 +5,9 @@ from __future__ import annotations
 import os
 
 
-def progress_bar(total: int | None, desc: str, unit: str = "it"):
-    """A tqdm bar; ``.update(n)`` and ``.close()``."""
+def progress_bar(total: int | None, desc: str, unit: str = "it", show: bool = True, iterable=None):
+    """A tqdm bar; ``.update(n)`` and ``.close()`` (or iterate it when ``iterable`` is given)."""
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, leave=False, mininterval=2.0,
-                disable=os.environ.get("GTKIT_PROGRESS") == "0")
+    return tqdm(iterable, total=total, desc=desc, unit=unit, leave=False, mininterval=2.0,
+                disable=not show or os.environ.get("GTKIT_PROGRESS") == "0")

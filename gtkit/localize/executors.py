@@ -113,9 +113,9 @@ def iter_map(executor, fn: Callable, items: list, progress: str | None = None) -
     medium sample's database features are ~9 GB in all), and keeps what is done if the run dies."""
     it = executor.map(fn, items)
     if progress:
-        from tqdm import tqdm
+        from ..progress import progress_bar
 
-        it = tqdm(it, total=len(items), desc=progress, unit="it", leave=False, mininterval=2.0)
+        it = progress_bar(len(items), progress, iterable=it)
     yield from it
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GtkitError
-from ..io.mesh import Mesh, MeshPart, sidecar_path, write_obj, write_offset_sidecar
+from ..io.mesh import Mesh, write_obj, write_offset_sidecar
 from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
 from . import depth as D
 from . import fusion, surface, texture
@@ -38,9 +38,9 @@ def _peak_gb() -> float:
 
 
 def _bar(total: int, desc: str, show: bool):
-    from tqdm import tqdm
+    from ..progress import progress_bar
 
-    return tqdm(total=total, desc=desc, unit="photo", disable=not show, leave=False)
+    return progress_bar(total, desc, unit="photo", show=show)
 
 
 def depth_maps(project: Project, views, neighbours, settings: ModelSettings, folder: Path, show: bool = True) -> dict:

@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 
 from ..io.atomic import atomic_path
-from .settings import ModelSettings
 from .views import View
 
 

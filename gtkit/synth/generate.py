@@ -10,7 +10,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from ..errors import GtkitError
 from ..geo import GeoFrame
@@ -18,6 +17,7 @@ from ..io.atomic import write_bytes, write_json, write_text
 from ..io.mesh import Mesh, write_obj, write_offset_sidecar
 from ..io.poses import write_intrinsics, write_poses
 from ..io.tiepoints import write_tiepoints
+from ..progress import progress_bar
 from ..project import Paths, Project
 from ..render.renderer import Renderer
 from . import annotate, flights, photos
@@ -37,7 +37,7 @@ def _rng(seed: int, stream: int) -> np.random.Generator:
 
 
 def _bar(desc: str, total: int | None, quiet: bool):
-    return tqdm(total=total, desc=desc, unit="img" if "photo" in desc else "it", disable=quiet, leave=False)
+    return progress_bar(total, desc, unit="img" if "photo" in desc else "it", show=not quiet)
 
 
 def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) -> dict:
