@@ -412,8 +412,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     else:
         summary["frame"] = "arbitrary SfM frame"
     rec = merge_models([models[k] for k in kept]) if len(kept) > 1 else models[kept[0]]
-    if len(kept) > 1 and georegister_block and P.gcp_list.is_file():
-        # GCP residuals of the merged block (each model was fitted on its own)
+    if len(kept) > 1:  # each model was georegistered on its own; the figures above are model 0's
         summary["georegistration"]["merged_models"] = kept
     for k, info in enumerate(models_info):
         info["kept"] = k in kept
