@@ -44,10 +44,10 @@ class SfmSettings:
     features: FeatureSettings = field(default_factory=FeatureSettings)
     matching: MatchSettings = field(default_factory=MatchSettings)
     georegister: GeoregisterSettings = field(default_factory=GeoregisterSettings)
-    # auto: cameras.txt calibrations stay fixed; cameras with an EXIF focal get focal + distortion
-    # refined, held by GPS pose priors in the BA when the block has GPS (a flat nadir block cannot
-    # tell focal length from flying height); cameras with no focal at all are self-calibrated
-    # (focal, distortion, principal point); yes: refine all; no: none (see intrinsics_policy)
+    # auto: cameras.txt calibrations stay fixed; cameras with an EXIF focal get distortion refined,
+    # and their focal only where the block's geometry determines it (a flat nadir block cannot tell
+    # focal length from flying height); cameras with no focal at all are self-calibrated (focal,
+    # distortion, principal point); yes: refine all; no: none (see intrinsics_policy)
     refine_intrinsics: str = "auto"
     gps_priors_in_ba: bool = True     # GPS positions as weak pose priors in the mapper's BA (refined cameras only)
     query_pattern: str = "*_W.*"      # which photos of a query sequence form its block
@@ -131,8 +131,8 @@ def _inputs(project: Project, names: list[str]) -> dict:
             "geo_txt": file_fingerprint(P.geo_txt), "crs": [project.frame.crs_spec, list(project.frame.origin)]}
 
 
-def _calibrated_camera_ids(db: Path, groups: list[CameraGroup]) -> tuple[set[int], set[int]]:
-    """(camera ids from cameras.txt, camera ids with neither cameras.txt nor an EXIF focal)."""
+def _camera_ids(db: Path, groups: list[CameraGroup]) -> tuple[set[int], set[int], set[int]]:
+    """(every camera id, those from cameras.txt, those with neither cameras.txt nor an EXIF focal)."""
     calibrated, no_prior = set(), set()
     with pycolmap.Database.open(db) as d:
         by_name = {im.name: im.camera_id for im in d.read_all_images()}
@@ -143,7 +143,7 @@ def _calibrated_camera_ids(db: Path, groups: list[CameraGroup]) -> tuple[set[int
             calibrated |= ids
         else:
             no_prior |= {i for i in ids if not cams[i].has_prior_focal_length}
-    return calibrated, no_prior
+    return set(cams), calibrated, no_prior
 
 
 def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: dict, n_images: int,
@@ -336,9 +336,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         pj = json.loads((out / "pairs.json").read_text())
         pairs_used, n_pairs = pj["strategies"], pj["n_pairs"]
     t_match = _step(label, f"matching ({n_pairs} pairs)", t_feat)
-    calibrated, no_prior = _calibrated_camera_ids(db, groups)
-    with pycolmap.Database.open(db) as d:
-        all_ids = {c.camera_id for c in d.read_all_cameras()}
+    all_ids, calibrated, no_prior = _camera_ids(db, groups)
     policy = intrinsics_policy(settings, calibrated, no_prior, all_ids, len(positions))
     models = _map(db, P.images, out / "mapper", settings, policy, len(names), label)
     t_map = _step(label, f"mapping ({sum(r.num_reg_images() for r in models)} photos in {len(models)} models)", t_match)
@@ -349,8 +347,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                                      "refined_principal_point": bool(policy["self_calibrate"]),
                                      "gps_priors_in_ba": policy["gps_priors_in_ba"],
                                      "fixed_cameras": sorted(policy["constant_cameras"]),
-                                     "self_calibrated_cameras": sorted(policy["self_calibrate"])},
-               "refined_distortion": policy["refine_distortion"], "refined_focal": policy["refine_focal"]}
+                                     "self_calibrated_cameras": sorted(policy["self_calibrate"])}}
     if not models:
         diag = image_diagnostics(db)
         summary.update(n_registered=0, n_models=0, models=[], unregistered={
@@ -398,7 +395,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                 continue
             try:
                 g = georegister(r, positions, gcps, settings.georegister, accuracy)
-                models_info[k]["georegistration"] = {kk: g[kk] for kk in ("n_inliers", "rmse_m", "gcp_median_err_m")}
+                models_info[k]["georegistration"] = {kk: g[kk] for kk in ("n_inliers", "rmse_inliers_m", "gcp_median_err_m")}
                 geo_models.append((k, g))
             except RegistrationError as e:
                 models_info[k]["georegistration"] = {"error": str(e)}

@@ -136,29 +136,6 @@ def match_pairs(db_path: Path, pairs: list[tuple[str, str]], settings: MatchSett
     pairs_file.unlink(missing_ok=True)
 
 
-def match(db_path: Path, pairing: str, settings: MatchSettings) -> None:
-    """Match and verify pairs: ``pairing`` is 'exhaustive', 'spatial' or 'sequential'."""
-    mo = pycolmap.FeatureMatchingOptions()
-    mo.num_threads = settings.num_threads
-    vo = pycolmap.TwoViewGeometryOptions()
-    vo.min_num_inliers = settings.min_num_inliers
-    kw = dict(matching_options=mo, verification_options=vo, device=pycolmap.Device.cpu)
-    if pairing == "exhaustive":
-        pycolmap.match_exhaustive(db_path, pairing_options=pycolmap.ExhaustivePairingOptions(), **kw)
-    elif pairing == "spatial":
-        po = pycolmap.SpatialPairingOptions()
-        po.max_num_neighbors = settings.spatial_neighbors
-        po.max_distance = settings.spatial_max_distance_m
-        po.ignore_z = True
-        pycolmap.match_spatial(db_path, pairing_options=po, **kw)
-    elif pairing == "sequential":
-        po = pycolmap.SequentialPairingOptions()
-        po.overlap = settings.sequential_overlap
-        pycolmap.match_sequential(db_path, pairing_options=po, **kw)
-    else:
-        raise ValueError(f"unknown pairing {pairing!r}")
-
-
 def image_diagnostics(db_path: Path) -> dict[str, dict]:
     """Per image: keypoints, verified pairs and the best pair's inlier count (why it may fail)."""
     out = {}

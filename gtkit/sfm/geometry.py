@@ -148,7 +148,7 @@ class Sim3Fit:
 
 
 def robust_sim3(src: np.ndarray, tgt: np.ndarray, max_error_m, what: str = "points", *,
-                weights=None, adaptive=None, floors=None, groups=None) -> Sim3Fit:
+                adaptive=None, floors=None, groups=None) -> Sim3Fit:
     """LO-RANSAC Sim(3) tgt_from_src (gtkit.sfm.similarity: Umeyama, no coplanarity failure);
     ``max_error_m`` a threshold or one per point. Raises :class:`RegistrationError` with the reason."""
     from .similarity import collinearity, lo_ransac_similarity
@@ -160,7 +160,7 @@ def robust_sim3(src: np.ndarray, tgt: np.ndarray, max_error_m, what: str = "poin
         raise RegistrationError(f"the {len(src)} usable {what} are collinear (or coincide): "
                                 "a similarity transform is undetermined")
     th = np.broadcast_to(np.asarray(max_error_m, float), (len(src),)).copy()
-    fit = lo_ransac_similarity(src, tgt, th, weights=weights,
+    fit = lo_ransac_similarity(src, tgt, th,
                                adaptive=None if adaptive is None else np.asarray(adaptive, bool),
                                floors=floors, groups=groups)
     if fit is None:

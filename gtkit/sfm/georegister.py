@@ -1,9 +1,10 @@
 """Georegister a block: robust Sim(3) from SfM camera centres to GPS centres (and/or from
 triangulated GCPs to their surveyed coordinates), then GCP and check-point residuals in metres.
 
-Thresholds come from the data's stated accuracy where it has one (geo.txt accuracy columns, the
-``gcp_accuracy_m`` setting), else GPS uses ``gps_inlier_m`` and GCPs their own scatter (LO-RANSAC
-with an adaptive threshold: metre-grade GCPs are kept and their residuals reported).
+Thresholds adapt to each group's own scatter (LO-RANSAC: metre-grade GCPs are kept and their
+residuals reported), never under 3 sigma of a stated accuracy (geo.txt accuracy columns, the
+``gcp_accuracy_m`` setting); GPS without a stated accuracy keeps the fixed ``gps_inlier_m``. GPS and
+GCPs together are weighted by their own scatter.
 Check points (``check`` in gcp_list.txt, or named in ``checkpoints``) never enter the fit."""
 from __future__ import annotations
 
@@ -65,7 +66,7 @@ def _not_usable(gcp_sfm: dict, names: list[str]) -> str:
 def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: list[GCP],
                 settings: GeoregisterSettings, gps_accuracy: dict[str, float] | None = None) -> dict:
     """Transform ``rec`` in place into the project's local world frame; returns a report dict.
-    ``gps_accuracy``: {photo: stated 1-sigma accuracy in metres} (geo.txt), used as its threshold."""
+    ``gps_accuracy``: {photo: stated 1-sigma accuracy in metres} (geo.txt): its threshold's floor."""
     poses = model_poses(rec)
     gps_accuracy = gps_accuracy or {}
     checks = {g.name for g in gcps if g.check} | set(settings.checkpoints)
@@ -119,7 +120,7 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
     report = {"used": settings.use, "n_gps": int((kinds == "gps").sum()), "n_gcp_in_fit": int((kinds == "gcp").sum()),
               "n_checkpoints": len([g for g in gcps if g.name in checks]),
               "scale": float(fit.tgt_from_src.scale), "n_inliers": int(fit.inliers.sum()),
-              "rmse_inliers_m": fit.rmse_inliers_m, "rmse_m": fit.rmse_inliers_m,
+              "rmse_inliers_m": fit.rmse_inliers_m,
               "gps_residual_median_m": float(np.median(fit.residuals_m[kinds == "gps"])) if (kinds == "gps").any() else None,
               "gcp_threshold_m": (float(np.median(fit.thresholds_m[kinds == "gcp"]))
                                   if fit.thresholds_m is not None and (kinds == "gcp").any() else None),

@@ -5,7 +5,7 @@ from __future__ import annotations
 from ..io.atomic import write_json, write_text
 from ..project import Paths
 
-GEO_KEYS = ("used", "n_inliers", "rmse_m", "n_gps", "n_gcp_in_fit", "n_checkpoints", "gcp_threshold_m",
+GEO_KEYS = ("used", "n_inliers", "n_gps", "n_gcp_in_fit", "n_checkpoints", "gcp_threshold_m",
             "gcp_median_err_m", "gcp_rmse_m", "checkpoint_median_err_m", "checkpoint_rmse_m", "outliers", "error")
 
 
@@ -16,7 +16,8 @@ def reference_report(summary: dict) -> dict:
             "n_points3D": summary.get("n_points3D"), "pairings": summary.get("pairings"),
             "n_pairs": summary.get("n_pairs"), "intrinsics_policy": summary.get("intrinsics_policy"),
             "intrinsics": summary.get("intrinsics"),
-            "georegistration": {k: geo.get(k) for k in GEO_KEYS if k in geo},
+            "georegistration": {**{k: geo.get(k) for k in GEO_KEYS if k in geo},
+                                **({"rmse_m": geo["rmse_inliers_m"]} if "rmse_inliers_m" in geo else {})},
             "gcp_residuals": geo.get("gcp_residuals", {}),
             "gcp_clicks_outside_block": summary.get("gcp_clicks_outside_block", {}),
             "models": [{k: v for k, v in m.items() if k != "photos"} for m in summary.get("models", [])],

@@ -66,7 +66,7 @@ class RobustFit:
     thresholds: np.ndarray   # per point, as finally used
 
 
-def lo_ransac_similarity(src: np.ndarray, tgt: np.ndarray, thresholds: np.ndarray, *, weights=None,
+def lo_ransac_similarity(src: np.ndarray, tgt: np.ndarray, thresholds: np.ndarray, *,
                          adaptive: np.ndarray | None = None, floors: np.ndarray | None = None,
                          groups: np.ndarray | None = None, max_trials: int = 2000, seed: int = 0) -> RobustFit | None:
     """LO-RANSAC similarity. ``thresholds``: inlier distance per point. ``adaptive`` (bool per point):
@@ -107,8 +107,7 @@ def lo_ransac_similarity(src: np.ndarray, tgt: np.ndarray, thresholds: np.ndarra
     for _ in range(20):  # local optimisation: refit on the inliers until they stop changing
         if inl.sum() < 3 or collinearity(src[inl]) < 1e-3:
             break
-        w = None if weights is None else np.asarray(weights, float)[inl]
-        refit = umeyama(src[inl], tgt[inl], w)
+        refit = umeyama(src[inl], tgt[inl])
         if refit is None:
             break
         sim = refit
