@@ -18,7 +18,7 @@ import numpy as np
 from .errors import GtkitError
 from .geo import GeoFrame, parse_crs, utm_epsg
 from .io.exif import read_photo_meta
-from .io.odm import _data_lines, parse_odm_crs, read_gcp_list, read_geo_txt
+from .io.odm import read_crs, read_gcp_list, read_geo_txt
 from .project import PROJECT_FILE, Paths, Project
 
 IMAGE_EXT = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
@@ -46,11 +46,6 @@ def _photos(folder: Path) -> list[Path]:
     if not out:
         raise GtkitError(f"no photos ({', '.join(IMAGE_EXT)}) in this folder", folder)
     return out
-
-
-def _crs_line(path: Path) -> str:
-    header, _ = _data_lines(path)
-    return parse_odm_crs(header, path)
 
 
 def _scan(photos: list[Path]) -> tuple[dict, list]:
@@ -100,9 +95,9 @@ def init_project(root: str | Path, reference: str | Path, queries: list[str | Pa
     if crs:
         spec, rep.crs_from = crs, "--crs"
     elif gcp is not None:
-        spec, rep.crs_from = _crs_line(Path(gcp)), f"{Path(gcp).name} (first line)"
+        spec, rep.crs_from = read_crs(gcp), f"{Path(gcp).name} (first line)"
     elif geo is not None:
-        spec, rep.crs_from = _crs_line(Path(geo)), f"{Path(geo).name} (first line)"
+        spec, rep.crs_from = read_crs(geo), f"{Path(geo).name} (first line)"
     elif gps:
         lon, lat = np.median(np.array(gps), axis=0)
         spec, rep.crs_from = f"EPSG:{utm_epsg(float(lon), float(lat))}", "UTM zone of the photos' GPS"

@@ -66,6 +66,12 @@ def _data_lines(path: Path):
     return lines[0][1], lines[1:]
 
 
+def read_crs(path: str | Path) -> str:
+    """The CRS named on the first line of a ``gcp_list.txt`` or ``geo.txt``."""
+    header, _ = _data_lines(path)
+    return parse_odm_crs(header, path)
+
+
 def read_gcp_list(path: str | Path, frame: GeoFrame) -> list[GCP]:
     """GCPs with their clicks, coordinates converted to ``frame``'s local world frame."""
     path = Path(path)
