@@ -59,13 +59,14 @@ def scene_only_project(root: Path, preset: str, seed: int = 0) -> None:
 
 
 GUI = r"""
-import json, os, resource, sys, time
+import json, os, sys, time
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 sys.path.insert(0, sys.argv[2])
 import numpy as np
 from PySide6.QtWidgets import QApplication
 from gui.app import make_app
 from gui.main_window import MainWindow
+from gtkit.view.scene import peak_rss_mb
 app = make_app()
 from pathlib import Path
 Path(sys.argv[1], "work/annotate/session.json").unlink(missing_ok=True)  # open on the tie-point tab
@@ -80,7 +81,7 @@ ms = sc.frame_ms[n0:]
 print(json.dumps({"tab_open_s": round(tab_s, 3), "scene_open_s": round(sc.open_s, 3),
                   "view_px": [sc.view.width(), sc.view.height()],
                   "frame_ms_median": round(float(np.median(ms)), 1), "frame_ms_p90": round(float(np.percentile(ms, 90)), 1),
-                  "max_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))
+                  "max_rss_mb": peak_rss_mb()}))
 w.close()
 """
 

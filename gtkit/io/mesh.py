@@ -161,13 +161,19 @@ def load_model(path: str | Path, frame=None, crs: str | None = None, offset=None
     ``frame`` (:class:`gtkit.geo.GeoFrame`), a CRS different from the project's is an error and
     the project's origin is subtracted. Without a frame the mesh is returned as stored + offset.
     """
+    shift = model_shift(path, frame, crs, offset)
+    mesh = read_mesh_file(path)
+    return mesh if shift is None else mesh.translated(shift)
+
+
+def model_shift(path: str | Path, frame=None, crs: str | None = None, offset=None) -> np.ndarray | None:
+    """What :func:`load_model` adds to the stored vertices (None: nothing), checking the CRS."""
     path = Path(path)
     side = read_offset_sidecar(path)
     if side is not None:
         crs, offset = side
     if frame is None:
-        mesh = read_mesh_file(path)
-        return mesh if offset is None else mesh.translated(offset)
+        return None if offset is None else np.asarray(offset, float)
     if crs is None:
         raise GtkitError("mesh has no georeference: write a .offset.json sidecar or give --crs and --offset",
                          path)
@@ -175,8 +181,7 @@ def load_model(path: str | Path, frame=None, crs: str | None = None, offset=None
 
     if not parse_crs(crs, path).equals(frame.crs):
         raise GtkitError(f"mesh CRS {crs} does not match the project CRS {frame.crs_spec}", path)
-    mesh = read_mesh_file(path)
-    return mesh.translated(np.asarray(offset if offset is not None else (0, 0, 0)) - np.asarray(frame.origin))
+    return np.asarray(offset if offset is not None else (0, 0, 0), float) - np.asarray(frame.origin)
 
 
 def write_obj(path: str | Path, mesh: Mesh, texture_format: str = "jpg") -> Path:

@@ -4,7 +4,7 @@ snapshots into ``reports/``, and the annotator's 3D tab shows the same scene.
 What is drawn, all read from the project's files (never ``truth/``):
 
 - the reference model (``model/``), decimated to ``max_triangles`` (vertex colours sampled from
-  its textures) when larger;
+  its textures) when larger, and cached (:mod:`gtkit.view.model`);
 - reference cameras as frusta (the reference block's poses ``work/sfm_reference/poses.txt``, else
   the photos' GPS + gimbal priors);
 - each query sequence's trajectory: the photos' priors (grey), pseudo-GT (``work/register``,
@@ -36,6 +36,7 @@ from ..io.exif import prior_pose
 from ..io.poses import read_intrinsics, read_poses
 from ..pose import Pose
 from ..project import Project
+from .model import view_model
 
 log = logging.getLogger(__name__)
 
@@ -84,80 +85,6 @@ def _use_egl():
 
 # --- reading the project ---------------------------------------------------------------------
 
-def _model_polydata(project: Project, max_triangles: int):
-    """The reference model as pyvista meshes (one per part, textured) or one decimated coloured mesh."""
-    import pyvista as pv
-
-    from ..export.sources import reference_model
-    from ..io.mesh import load_model
-
-    try:
-        path = reference_model(project.paths)
-    except GtkitError:
-        return None, 0, 0
-    # a big model is decimated once and cached in work/view/ (decoding its textures is most of the
-    # time to open it)
-    from ..io.atomic import atomic_path
-    from ..project import file_fingerprint, settings_key
-
-    files = sorted(f for f in Path(path).parent.iterdir() if f.is_file()) if Path(path).is_file() else [Path(path)]
-    key = settings_key({"files": {f.name: file_fingerprint(f) for f in files}, "max_triangles": max_triangles,
-                        "origin": list(project.frame.origin), "version": 1})
-    cache = project.paths.stage("view") / f"model_{key}.npz"
-    if cache.is_file():
-        with np.load(cache) as z:
-            verts, faces, rgb, n = z["vertices"].astype(np.float64), z["faces"], z["rgb"], int(z["n_in"])
-        pd = pv.PolyData(verts, np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel())
-        pd.point_data["rgb"] = rgb
-        return [(pd, None)], n, len(faces)
-    mesh = load_model(path, project.frame)
-    n = mesh.n_triangles
-    if n <= max_triangles:
-        parts = []
-        for p in mesh.parts:
-            faces = np.hstack([np.full((len(p.faces), 1), 3), p.faces]).astype(np.int64).ravel()
-            pd = pv.PolyData(np.asarray(p.vertices, float), faces)
-            if p.texture is not None and p.uv is not None:
-                pd.active_texture_coordinates = np.asarray(p.uv, np.float32)
-                parts.append((pd, pv.Texture(np.ascontiguousarray(p.texture))))  # row 0 = top, as pyvista takes it
-            elif p.colors is not None:
-                pd.point_data["rgb"] = np.asarray(p.colors, np.uint8)
-                parts.append((pd, None))
-            else:
-                parts.append((pd, None))
-        return parts, n, n
-    # too big to orbit smoothly: one mesh with vertex colours sampled from the textures, decimated
-    import open3d as o3d
-
-    V, F, C, off = [], [], [], 0
-    for p in mesh.parts:
-        V.append(p.vertices)
-        F.append(p.faces + off)
-        off += len(p.vertices)
-        if p.texture is not None and p.uv is not None:
-            h, w = p.texture.shape[:2]
-            u = np.clip((p.uv[:, 0] * w).astype(int), 0, w - 1)
-            v = np.clip(((1 - p.uv[:, 1]) * h).astype(int), 0, h - 1)
-            C.append(p.texture[v, u] / 255.0)
-        elif p.colors is not None:
-            C.append(p.colors / 255.0)
-        else:
-            C.append(np.full((len(p.vertices), 3), 0.78))
-    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.concatenate(V)),
-                                  o3d.utility.Vector3iVector(np.concatenate(F).astype(np.int32)))
-    m.vertex_colors = o3d.utility.Vector3dVector(np.concatenate(C))
-    m = m.simplify_quadric_decimation(max_triangles)
-    verts, faces = np.asarray(m.vertices), np.asarray(m.triangles)
-    pd = pv.PolyData(verts, np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel())
-    rgb = (np.clip(np.asarray(m.vertex_colors), 0, 1) * 255).astype(np.uint8)
-    pd.point_data["rgb"] = rgb
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(cache) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, vertices=verts.astype(np.float32), faces=faces.astype(np.int32), rgb=rgb, n_in=n)
-    return [(pd, None)], n, len(faces)
-
-
 def _poses(path: Path) -> dict[str, Pose]:
     return read_poses(path) if path.is_file() else {}
 
@@ -168,7 +95,7 @@ def load_scene(project: Project | str | Path, settings: ViewSettings | None = No
     P = project.paths
     out = SceneData()
     t0 = time.perf_counter()
-    out.model, out.n_triangles_model, out.n_triangles_shown = _model_polydata(project, s.max_triangles)
+    out.model, out.n_triangles_model, out.n_triangles_shown = view_model(project, s.max_triangles)
     out.seconds["model"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     out.cameras = read_intrinsics(P.cameras) if P.cameras.is_file() else {}
@@ -400,8 +327,6 @@ def describe(scene: SceneData) -> dict:
 def write_snapshots(plotter, scene: SceneData, out_dir: Path, which=SNAPSHOTS, orbit_frames: int = 36) -> dict:
     """Write ``scene_<view>.png`` for each view into ``out_dir``; then orbit the oblique view and
     time the frames (render only, and render + read-back)."""
-    import resource
-
     from ..io.atomic import atomic_path
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -426,7 +351,21 @@ def write_snapshots(plotter, scene: SceneData, out_dir: Path, which=SNAPSHOTS, o
     return {"files": files,
             "frame_ms_median": round(1000 * float(np.median(frame)), 2) if frame else None,
             "frame_with_readback_ms_median": round(1000 * float(np.median(frame_rb)), 2) if frame_rb else None,
-            "max_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}
+            "max_rss_mb": peak_rss_mb()}
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory (VmHWM: unlike ru_maxrss it is not carried over from the
+    parent across exec, so a renderer spawned by a big process reports its own)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        pass
+    import resource
+
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
 
 
 def snapshots(project: Project | str | Path, settings: ViewSettings | None = None, out_dir: Path | None = None,
