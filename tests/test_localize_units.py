@@ -10,7 +10,7 @@ from gtkit.localize.grid import grid_positions, make_views
 from gtkit.localize.lift import lift, sample_depth
 from gtkit.localize.pnp import PnPSettings, gravity_pnp_ransac
 from gtkit.localize.localize import rank_candidates
-from gtkit.localize.prior import footprint_filter, gps_filter, look_at_points, rotation_filter
+from gtkit.localize.prior import footprint_filter, gps_filter, look_at_points, predicted_overlap, rotation_filter
 from gtkit.pose import Pose
 
 CAM = Camera.pinhole(800, 600, 700.0)
@@ -163,6 +163,29 @@ def test_footprint_prior_pairs_a_low_oblique_query_with_a_high_view_of_the_same_
     # a camera-centre radius keeps the wrong one (right above the query) and drops the right one
     # (7.6 m away) -- the point of comparing where the cameras look
     assert gps_filter(q.center[:2], V, 5.0).tolist() == [False, True]
+
+
+def test_predicted_overlap_is_the_share_of_the_prior_ground_a_view_sees():
+    # nadir query 100 m over flat ground (footprint 200 m x 150 m); views 100 m up, nadir, shifted east
+    cam = Camera.pinhole(800, 600, 400.0)
+    q = Pose.from_dji(0.0, -90.0, 0.0, [0.0, 0.0, 100.0])
+    shifts = [0.0, 50.0, 100.0, 150.0, 250.0]
+    views = [Pose.from_dji(0.0, -90.0, 0.0, [dx, 0.0, 100.0]) for dx in shifts]
+    VR, Vt = np.array([v.R for v in views]), np.array([v.t for v in views])
+    ov = predicted_overlap(q.center, q.R, cam, VR, Vt, cam, 0.0, grid=(40, 30))
+    # the shifted footprint keeps (200 - dx) / 200 of the query's ground
+    assert np.allclose(ov, [1.0, 0.75, 0.5, 0.25, 0.0], atol=0.03)
+    # an oblique 60 m query and a 45 deg view of the same ground overlap more than the nadir view
+    # right above the query (where the look-at rule and the camera-centre rule disagree)
+    dq = 60.0 / np.tan(np.radians(33.0))
+    qo = Pose.from_dji(0.0, -33.0, 0.0, [0.0, -dq, 60.0])
+    same = Pose.from_dji(0.0, -45.0, 0.0, [0.0, -100.0, 100.0])
+    above = Pose.from_dji(0.0, -90.0, 0.0, [0.0, -dq, 100.0])
+    o = predicted_overlap(qo.center, qo.R, cam, np.array([same.R, above.R]), np.array([same.t, above.t]), cam, 0.0)
+    assert o[0] > 0.95 and o[1] < 0.6
+    # a camera that sees no ground (looking up) predicts nothing
+    up = Pose.from_dji(0.0, 30.0, 0.0, [0.0, 0.0, 100.0])
+    assert predicted_overlap(up.center, up.R, cam, VR, Vt, cam, 0.0).tolist() == [0.0] * 5
 
 
 def test_rank_candidates_puts_the_position_prior_first_and_fills_up():

@@ -7,9 +7,14 @@ depth -> gravity-guided P3P RANSAC (gamma_eps) -> refined pose, or a failure wit
 Two additions to the paper's method (both recorded per query in ``status.json``; ablation
 ``paper`` switches both off, ``no-gps`` runs GPS-denied as the paper does):
 
-- GPS footprint prior (``gps_footprint_radius_m``): when the photo has GPS, altitude and gimbal
-  angles, the views whose look-at point on the ground lies near the query's are ranked before all
-  others (``gps_footprint`` in the status). Global descriptors alone fail on repetitive fields.
+- Position prior (``position_prior``): when the photo has GPS, altitude and gimbal angles, the
+  candidate views are ranked by the overlap predicted from those sensors
+  (:func:`gtkit.localize.prior.predicted_overlap`: the share of the ground the prior pose sees that a
+  view sees) plus ``prior_vlad_weight`` x the global-descriptor score; views predicted to see none of
+  it follow, by descriptor score (``position_prior`` in the status). Global descriptors alone fail on
+  repetitive fields and swing with the codebook (R@1 57 % on the small sample, seed 0; 100 % with the
+  predicted overlap). ``"footprint"`` is the earlier rule (views whose look-at point lies within
+  ``gps_footprint_radius_m`` of the query's first, then descriptor score), kept as an ablation.
 - Fallback (``fallback_rounds``): when PnP fails on the top-k views, the next top-k of the ranking
   are tried (``fallback_round``, ``fallback_retrieved``, ``failed_rounds``). Retrieval metrics
   score the first top-k only.
@@ -83,12 +88,19 @@ class LocalizeSettings:
     rotation_prior: bool = True        # filter database views by the IMU prior (paper: on)
     gamma_o: float = 30.0              # deg, per angle (paper)
     gps_radius_m: float | None = None  # keep views whose camera centre lies within this radius of the GPS prior
-    # Position prior (not in the paper, which is GPS-denied; ablation 'no-gps' switches it off):
-    # when the photo has GPS + altitude + gimbal angles, rank first the views whose look-at point
-    # (optical axis meets the database's ground level) lies within this radius of the query's.
+    # Position prior (not in the paper, which is GPS-denied; ablation 'no-gps' switches it off), used
+    # when the photo has GPS + altitude + gimbal angles: "overlap" ranks the candidates by the overlap
+    # predicted from the sensors + prior_vlad_weight x descriptor score (see the module doc);
+    # "footprint" ranks first the views whose look-at point (optical axis meets the database's
+    # ground level) lies within gps_footprint_radius_m of the query's; None = off.
+    position_prior: str | None = "overlap"
+    # Weight of the descriptor score next to the predicted overlap (both about 0-1). Measured on the
+    # small sample (seed 0, 28 queries, offline over all candidates): R@1 100 % at 0 and 0.25, 96 % at
+    # 0.5-1, 79 % at 4; 0.25 keeps the appearance as a tie-break between views of equal predicted overlap.
+    prior_vlad_weight: float = 0.25
     # 75 m = the largest grid interval alpha_t: every ground point lies within alpha_t/sqrt(2) = 53 m
-    # of a grid position of every level, leaving ~20 m for GPS/altitude error. None = off.
-    gps_footprint_radius_m: float | None = 75.0
+    # of a grid position of every level, leaving ~20 m for GPS/altitude error (position_prior "footprint").
+    gps_footprint_radius_m: float = 75.0
     top_k: int = 3                     # retrieved views per query (paper)
     # When PnP fails on the top-k views, try the next top-k of the ranking, up to this many more times
     # (0 = the paper). Costs time only on queries that would otherwise fail (at most
@@ -107,9 +119,10 @@ class LocalizeSettings:
 # Ablations (the paper's tables): each names its own output folder work/localize-<name>/.
 ABLATIONS: dict[str, dict] = {
     "default": {},
-    "paper": {"gps_footprint_radius_m": None, "fallback_rounds": 0,           # the paper's method as published
+    "paper": {"position_prior": None, "fallback_rounds": 0,                   # the paper's method as published
               "db_paper_pitches": PAPER_PITCHES},                              # (its database: 0 and 45 deg)
-    "no-gps": {"gps_footprint_radius_m": None},                               # GPS-denied (paper setting)
+    "no-gps": {"position_prior": None},                                       # GPS-denied (paper setting)
+    "footprint-prior": {"position_prior": "footprint"},                       # the look-at radius rule (before)
     "no-fallback": {"fallback_rounds": 0},
     "no-rot-prior": {"rotation_prior": False},
     "no-gravity": {"pnp": {"gravity_deg": None}},
@@ -292,6 +305,8 @@ def _context(ctx: dict):
                   ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
                   centers=np.array([v.pose.center for v in db.views]).reshape(-1, 3),
                   look_at=_view_look_at(db),
+                  view_R=np.array([np.asarray(v.pose.R) for v in db.views]).reshape(-1, 3, 3),
+                  view_t=np.array([np.asarray(v.pose.t) for v in db.views]).reshape(-1, 3),
                   h5=h5py.File(ctx["features"], "r"), extractor=_extractor(s.features, db=False),
                   matcher=_matcher(s), cams=read_intrinsics(proj.paths.cameras))
     return _W
@@ -314,8 +329,8 @@ def _ground_level(db: Database) -> float:
 
 
 def rank_candidates(score: np.ndarray, keep: np.ndarray, near: np.ndarray | None, n: int) -> np.ndarray:
-    """Indices of up to ``n`` views passing ``keep``, best global-descriptor score first; when
-    ``near`` (the position prior) is given, every view passing it comes before any that does not."""
+    """Indices of up to ``n`` views passing ``keep``, best ``score`` first; when ``near`` (the
+    position prior) is given, every view passing it comes before any that does not."""
     s = np.where(keep, score, -np.inf)
     idx = np.flatnonzero(keep)
     if near is None:
@@ -356,7 +371,7 @@ def _localize_query(W: dict, name: str) -> dict:
     import cv2
 
     from ..io.exif import read_photo_meta
-    from .prior import footprint_filter, gps_filter, look_at_points, rotation_filter
+    from .prior import footprint_filter, gps_filter, look_at_points, predicted_overlap, rotation_filter
 
     s: LocalizeSettings = W["s"]
     proj: Project = W["project"]
@@ -404,16 +419,25 @@ def _localize_query(W: dict, name: str) -> dict:
                          f"(yaw, pitch, roll = {', '.join(f'{a:.1f}' for a in rec.get('prior_ypr', []))})"
                          if s.rotation_prior and prior_R is not None else "no database view passes the priors")
         return rec
-    near = None
-    if (s.gps_footprint_radius_m is not None and meta.has_gps and meta.altitude is not None
-            and prior_R is not None):
-        c = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude))[:3]
-        la = look_at_points(c[None], np.asarray(prior_R)[2][None], _ground_level(db))[0]
-        near = footprint_filter(la, W["look_at"], s.gps_footprint_radius_m)
-        rec["gps_footprint"] = {"look_at_xy": [round(float(x), 2) for x in la],
-                                "n_near": int((near & keep).sum()), "radius_m": s.gps_footprint_radius_m}
     score = W["G"] @ W["vlad"].describe(fq.desc)
-    ranked = rank_candidates(score, keep, near, s.top_k * (1 + max(0, s.fallback_rounds)))
+    near, key = None, score
+    if s.position_prior is not None and meta.has_gps and meta.altitude is not None and prior_R is not None:
+        c = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude))[:3]
+        if s.position_prior == "footprint":
+            la = look_at_points(c[None], np.asarray(prior_R)[2][None], _ground_level(db))[0]
+            near = footprint_filter(la, W["look_at"], s.gps_footprint_radius_m)
+            rec["position_prior"] = {"mode": "footprint", "look_at_xy": [round(float(x), 2) for x in la],
+                                     "n_near": int((near & keep).sum()), "radius_m": s.gps_footprint_radius_m}
+        else:
+            idx = np.flatnonzero(keep)
+            pred = np.zeros(len(db.views))
+            pred[idx] = predicted_overlap(c, prior_R, cam.pinhole_part(), W["view_R"][idx], W["view_t"][idx],
+                                          db.camera, _ground_level(db))
+            near = pred > 0
+            key = pred + s.prior_vlad_weight * score
+            rec["position_prior"] = {"mode": "overlap", "n_overlapping": int((near & keep).sum()),
+                                     "best_predicted": round(float(pred.max()), 3)}
+    ranked = rank_candidates(key, keep, near, s.top_k * (1 + max(0, s.fallback_rounds)))
     sec["retrieval"] = time.perf_counter() - t
     rounds = [ranked[k:k + s.top_k] for k in range(0, len(ranked), s.top_k)]
     # round 0 = the top-k (what retrieval metrics score); later rounds = fallback views

@@ -61,3 +61,33 @@ def footprint_filter(prior_look_at, views_look_at: np.ndarray, radius_m: float) 
     """
     d = np.asarray(views_look_at, dtype=np.float64)[:, :2] - np.asarray(prior_look_at, dtype=np.float64)[None, :2]
     return np.linalg.norm(d, axis=1) <= radius_m
+
+
+def predicted_overlap(center, R, camera, view_R: np.ndarray, view_t: np.ndarray, view_camera, ground_z: float,
+                      grid: tuple[int, int] = (16, 12), max_dist: float = 600.0) -> np.ndarray:
+    """(N,) share of the ground the query would see from its prior pose that each view sees.
+
+    The prior pose (camera ``center`` in the world, world-to-camera rotation ``R``, intrinsics
+    ``camera``) casts a ``grid`` of rays onto the plane ``z = ground_z``; each view (world-to-camera
+    ``view_R`` (N, 3, 3), ``view_t`` (N, 3), intrinsics ``view_camera``) scores the share of those
+    ground points inside its image and in front of it. Rays above the horizon or farther than
+    ``max_dist`` do not count. It predicts, from the sensors alone, the overlap that retrieval is
+    judged by (the share of the query's surface a view sees); 0 for every view when no ray meets
+    the ground.
+    """
+    gw, gh = grid
+    u = (np.arange(gw) + 0.5) * camera.width / gw
+    v = (np.arange(gh) + 0.5) * camera.height / gh
+    uv = np.stack(np.meshgrid(u, v), axis=-1).reshape(-1, 2)
+    rays = camera.rays(uv) @ np.asarray(R, dtype=np.float64)  # camera -> world directions (R^T d)
+    c = np.asarray(center, dtype=np.float64).reshape(3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (ground_z - c[2]) / rays[:, 2]
+    ok = (rays[:, 2] < -1e-6) & (s > 0) & (s <= max_dist)
+    if not ok.any() or len(view_R) == 0:
+        return np.zeros(len(view_R))
+    P = c[None] + s[ok, None] * rays[ok]                                  # (M, 3) ground points
+    pc = np.einsum("nij,mj->nmi", np.asarray(view_R, dtype=np.float64), P) + np.asarray(view_t)[:, None, :]
+    uv_v, front = view_camera.project(pc)
+    inside = front & view_camera.in_image(uv_v)
+    return inside.mean(axis=1)
