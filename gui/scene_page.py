@@ -1,6 +1,6 @@
 """The 3D scene tab: the project's model, reference cameras (frusta), query trajectories (prior,
-pseudo-GT, localized coloured by error), GCPs with residual vectors and target tracks
-(:mod:`gtkit.view.scene`).
+pseudo-GT, localized coloured by error), tie points, GCPs with residual vectors, targets with their
+tracks and lines of sight (:mod:`gtkit.view.scene`).
 
 VTK renders offscreen in a child process (:class:`gtkit.view.process.SceneProcess`; VTK and the
 annotator's own moderngl renderer must not share a process) and the tab shows the image it
@@ -95,7 +95,10 @@ class ScenePage(QWidget):
             f"cameras ({i['reference_source']}); trajectories: "
             + (", ".join(f"{k} {v}" for k, v in i["trajectories"].items()) or "none")
             + (f"; colour = {i['error_source']}" if i["error_source"] else "")
-            + f"; {i['n_gcps']} GCPs, {i['n_tracks']} tracks; opened in {self.open_s:.2f} s. "
+            + f"; {i['n_tiepoints']} tie points ({i['n_tiepoints_flagged']} left out); {i['n_gcps']} GCPs; "
+            f"{i['n_targets']} placed targets in {i['n_tracks']} tracks"
+            + (f", {i['n_targets_unplaced']} clicks not placed" if i["n_targets_unplaced"] else "")
+            + f"; opened in {self.open_s:.2f} s. "
             "Left drag: orbit, right drag: pan, wheel: zoom.")
         self.status.emit(f"3D scene opened in {self.open_s:.2f} s")
 

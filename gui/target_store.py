@@ -151,10 +151,10 @@ class TargetStore:
 def tracked_results(tracks_csv: str | Path) -> list[dict]:
     """Rows of ``exports/tracks.csv`` (:mod:`gtkit.track.tracker`), or [] when there is none or
     it cannot be read (it is only shown, never needed)."""
-    p = Path(tracks_csv)
+    from gtkit.view.scene import read_tracks_csv
+
     try:
-        lines = [ln for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip() and not ln.startswith("#")]
-        rows = list(csv.DictReader(lines))
+        rows = read_tracks_csv(Path(tracks_csv))
     except (OSError, UnicodeDecodeError, csv.Error):
         return []
     out = []

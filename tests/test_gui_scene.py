@@ -143,3 +143,111 @@ def test_annotator_scene_tab_jumps_to_the_selected_photo_and_orbits(finished_dem
     assert rv.image is not None and rv._cache[5].misalignment_px < 1.0, rv.image
     w.close()
     assert sc.proc is None  # the scene process is closed with the window
+
+
+def test_scene_draws_tiepoints_gcps_and_targets_where_they_are(finished_demo, tmp_path):
+    """Tie points placed on the model from their reference clicks (flagged ones in white), GCPs with
+    their residual vectors, tracked targets with their track and lines of sight: each drawn in its
+    colour where the view projects its 3D position (top view, offscreen PNG pixels)."""
+    import cv2
+
+    from gtkit.io.poses import read_intrinsics, read_poses, write_poses
+    from gtkit.io.tiepoints import Observation, TiePoint, write_tiepoints
+    from gtkit.project import Project
+    from gtkit.view.process import SceneProcess
+    from gtkit.view.scene import COLORS, ViewSettings, load_scene
+
+    site = tmp_path / "site"
+    shutil.copytree(finished_demo, site)
+    proj = Project.load(site)
+    origin = np.asarray(proj.frame.origin)
+    truth, cams = read_poses(site / "truth/poses.txt"), read_intrinsics(site / "truth/intrinsics.txt")
+    refs = {n: p for n, p in truth.items() if n.startswith("reference/")}
+    write_poses(site / "work/sfm_reference/poses.txt", refs)  # the reference block's poses
+    # three ground points (z = 0) that the true cameras see (no box of the demo model on the line of
+    # sight: slab test on the boxes' bounds), clicked where they see them
+    from gui.demo import demo_mesh
+
+    boxes = [np.stack([p.vertices.min(0), p.vertices.max(0)]) for p in demo_mesh(0).parts[1:]]
+    n0, n1, q = "reference/R01_000_N.jpg", "reference/R01_001_N.jpg", "queries/seq1/0001_W.jpg"
+
+    def blocked(c, X, b):
+        d = X - c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0, t1 = (b[0] - 0.5 - c) / d, (b[1] + 0.5 - c) / d
+        lo, hi = np.nanmax(np.minimum(t0, t1)), np.nanmin(np.maximum(t0, t1))
+        return lo <= min(hi, 0.999)
+
+    def seen(name, X):
+        c = truth[name].center
+        return (bool(cams[name].in_image(cams[name].project(truth[name].transform(X[None]))[0][0], margin=20))
+                and not any(blocked(c, X, b) for b in boxes))
+
+    clear = [X for X in (np.array([x, y, 0.0]) for x in range(-60, 61, 6) for y in range(-60, 61, 6))
+             if seen(n0, X) and seen(n1, X) and seen(q, X)]
+    assert len(clear) >= 5
+    A, B, C = clear[0], clear[len(clear) // 2], clear[-1]
+
+    def click(name, X):
+        uv = cams[name].project(truth[name].transform(X[None]))[0][0]
+        assert cams[name].in_image(uv), (name, X)
+        return Observation(name, float(uv[0]), float(uv[1]))
+
+    write_tiepoints(site / "tiepoints.json", [
+        TiePoint("tA", [click(q, A), click(n0, A), click(n1, A)]), TiePoint("tB", [click(q, B), click(n1, B)]),
+        TiePoint("tC", [click(q, C), click(n0, C)])])
+    (site / "work/register").mkdir(parents=True, exist_ok=True)
+    (site / "work/register/registration.json").write_text(json.dumps({
+        "tiepoints": {t: {"in_final_ba": t != "tC"} for t in ("tA", "tB", "tC")},
+        "bad_tiepoints": {"tC": {"reason": "clicks dropped as mistakes"}}}))
+    # two GCPs; one with a 0.3 m residual (drawn 50x: 15 m)
+    open_ground = [np.array([x, y, 0.0]) for x in range(-80, 81, 10) for y in range(-80, 81, 10)
+                   if not any((b[0, :2] - 4 < (x, y)).all() and ((x, y) < b[1, :2] + 4).all() for b in boxes)]
+    G1, G2 = open_ground[0], open_ground[-1]
+    (site / "gcp_list.txt").write_text(f"{proj.frame.crs_spec}\n" + "".join(
+        f"{x + origin[0]:.3f} {y + origin[1]:.3f} {z:.3f} 10 10 {n0} {name}\n" for name, (x, y, z) in (("g1", G1), ("g2", G2))))
+    (site / "work/sfm_reference/block.json").write_text(json.dumps({"georegistration": {"gcp_residuals": {
+        "g1": {"status": "ok", "dx_m": 0.3, "dy_m": 0.0, "dz_m": 0.0}}}}))
+    # a tracked car: three placed detections in zoom photos of seq1 (the wide twins are localized)
+    T = [np.array([-20.0 + 12 * k, -75.0 + 3 * k, 0.0]) for k in range(3)]
+    rows = ["# gtkit track: test rows", "label,time,image,u,v,status,x,y,z,message"]
+    rows += [f"car,{k}.0,queries/seq1/{k:04d}_Z.jpg,100,100,ok,{p[0] + origin[0]:.3f},{p[1] + origin[1]:.3f},{p[2]:.3f},"
+             for k, p in enumerate(T)]
+    (site / "exports").mkdir(exist_ok=True)
+    (site / "exports/tracks.csv").write_text("\n".join(rows) + "\n")
+
+    sc = load_scene(site)  # placement (no rendering)
+    for tid, X in (("tA", A), ("tB", B), ("tC", C)):
+        assert np.linalg.norm(sc.tiepoints[tid] - X) < 0.05, (tid, sc.tiepoints[tid], X)
+    assert sc.tiepoints_flagged == {"tC"} and set(sc.tracks) == {("car", "queries/seq1")}
+    assert np.allclose(sc.tracks[("car", "queries/seq1")], T, atol=1e-3)
+    sp = SceneProcess(site, 900, 900)
+    try:
+        assert sp.info["n_tiepoints"] == 3 and sp.info["n_targets"] == 3 and sp.info["n_gcps"] == 2
+        sp.overview("top")
+        img = sp.render()
+        px = {k: sp.world_to_pixel([X])[0] for k, X in
+              (("A", A), ("B", B), ("C", C), ("G1", G1), ("G2", G2), ("res", G1 + [15.0, 0, 0]),
+               *((f"T{k}", p) for k, p in enumerate(T)), ("line", (T[0] + T[1]) / 2))}
+        eye = read_poses(site / "work/localize/poses.txt")["queries/seq1/0001_W.jpg"].center
+        px["sight"] = sp.world_to_pixel([0.5 * (eye + T[1])])[0]
+    finally:
+        sp.close()
+    sp = SceneProcess(site, 900, 900, ViewSettings(layers=("model",)))  # the same view, model only
+    try:
+        sp.overview("top")
+        bare = sp.render()
+    finally:
+        sp.close()
+    cv2.imwrite(str(tmp_path / "top.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+
+    def rgb(name):
+        return np.array([int(COLORS[name][i:i + 2], 16) for i in (1, 3, 5)])
+
+    expect = {"A": "tiepoint", "B": "tiepoint", "C": "tiepoint_flagged", "G1": "gcp", "G2": "gcp", "res": "residual",
+              "T0": "track", "T1": "track", "T2": "track", "line": "track", "sight": "sight"}
+    missing = {k: (c, px[k].round(1).tolist()) for k, c in expect.items() if not _near_colour(img, px[k], rgb(c), r=4, tol=50)}
+    assert not missing, missing
+    # ... and not there in the model alone (the demo's texture is colourful)
+    in_model = {k: c for k, c in expect.items() if _near_colour(bare, px[k], rgb(c), r=4, tol=50)}
+    assert not in_model, in_model

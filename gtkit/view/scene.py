@@ -41,7 +41,15 @@ from .model import view_model
 log = logging.getLogger(__name__)
 
 COLORS = {"model": "#c8c8c8", "reference": "#ffd400", "prior": "#9a9a9a", "pseudo_gt": "#00c853",
-          "localized": "#2979ff", "gcp": "#ff1744", "residual": "#ff9100", "track": "#e040fb"}
+          "localized": "#2979ff", "gcp": "#ff1744", "residual": "#ff9100", "track": "#e040fb",
+          "sight": "#f8bbd0", "unplaced": "#ff80ab", "tiepoint": "#00e5ff", "tiepoint_flagged": "#ffffff"}
+LAYERS = ("model", "reference", "queries", "gcps", "tiepoints", "targets")
+LEGEND = (("reference", "reference", "reference cameras"), ("prior", "prior", "query priors (photo metadata)"),
+          ("pseudo_gt", "pseudo_gt", "pseudo-GT"), ("localized", "localized", "localized"),
+          ("tiepoint", "tiepoint", "tie points"), ("tiepoint_flagged", "tiepoint_flagged", "tie points left out"),
+          ("gcp", "gcp", "GCPs"), ("gcp_residuals", "residual", "GCP residuals x{scale:g}"),
+          ("targets", "track", "targets and tracks"), ("sight", "sight", "lines of sight"),
+          ("unplaced", "unplaced", "clicks not placed (ray)"))  # actor, colour, text
 SNAPSHOTS = ("oblique", "top")
 
 
@@ -54,7 +62,8 @@ class ViewSettings:
     frustum_m: float | None = None    # frustum depth; default 3 % of the site's diagonal
     residual_scale: float = 50.0      # GCP residual vectors drawn this many times longer
     snapshots: tuple[str, ...] = SNAPSHOTS
-    layers: tuple[str, ...] = ("model", "reference", "queries", "gcps", "tracks")  # what is drawn
+    layers: tuple[str, ...] = LAYERS  # what is drawn ("tracks" is taken for "targets")
+    legend: bool = True
 
 
 @dataclass
@@ -71,7 +80,12 @@ class SceneData:
     errors_m: dict[str, float] = field(default_factory=dict)                 # localized name -> error
     error_source: str = ""
     gcps: list[tuple[str, np.ndarray, np.ndarray | None]] = field(default_factory=list)
-    tracks: dict[str, np.ndarray] = field(default_factory=dict)
+    tiepoints: dict[str, np.ndarray] = field(default_factory=dict)           # id -> placed 3D point
+    tiepoints_flagged: set[str] = field(default_factory=set)                # left out / clicks dropped
+    tiepoint_source: str = ""
+    targets: list[dict] = field(default_factory=list)   # placed: label, sequence, image, time, xyz, eye
+    unplaced: list[dict] = field(default_factory=list)  # clicks without a 3D point: image, label, eye, end
+    tracks: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)  # (label, sequence) -> points
     cameras: dict[str, Camera] = field(default_factory=dict)
     bounds: np.ndarray | None = None                    # (2, 3)
     seconds: dict[str, float] = field(default_factory=dict)
@@ -134,21 +148,160 @@ def load_scene(project: Project | str | Path, settings: ViewSettings | None = No
             g = (json.loads(block.read_text()).get("georegistration") or {}).get("gcp_residuals") or {}
             res = {n: np.array([r["dx_m"], r["dy_m"], r["dz_m"]]) for n, r in g.items() if r.get("status") == "ok"}
         out.gcps = [(g.name, g.xyz, res.get(g.name)) for g in read_gcp_list(P.gcp_list, project.frame)]
-    if P.tracks.is_file():
-        tr: dict[str, list] = {}
-        with open(P.tracks, newline="") as f:
-            for r in csv.DictReader(f):
-                if r.get("status") == "ok" and r.get("x"):
-                    tr.setdefault(r["label"], []).append((r.get("time", ""), float(r["x"]), float(r["y"]), float(r["z"])))
-        out.tracks = {k: np.array([p[1:] for p in sorted(v)]) for k, v in tr.items()}
+    locator = _Surface(out.model)
+    _tiepoints(project, out, locator)
+    _targets(project, out, locator)
     pts = [np.asarray(pd.bounds).reshape(3, 2).T for pd, _t in (out.model or [])]
     pts += [p.center[None].repeat(2, 0) for p, _c in out.reference.values()]
     pts += [np.array(list(v.values())) for v in out.queries.values() if v]
+    pts += [np.array(list(out.tiepoints.values()))] if out.tiepoints else []
+    pts += [np.array([t["xyz"] for t in out.targets])] if out.targets else []
     if pts:
         allp = np.concatenate(pts)
         out.bounds = np.stack([allp.min(0), allp.max(0)])
     out.seconds["cameras_and_files"] = time.perf_counter() - t1
     return out
+
+
+class _Surface:
+    """Where rays first meet the model as the view draws it (VTK cell locator; no rendering)."""
+
+    def __init__(self, model):
+        self.loc = None
+        if not model:
+            return
+        from vtkmodules.vtkCommonDataModel import vtkStaticCellLocator
+        from vtkmodules.vtkFiltersCore import vtkAppendPolyData
+
+        app = vtkAppendPolyData()
+        for pd, _t in model:
+            app.AddInputData(pd)
+        app.Update()
+        self.mesh = app.GetOutput()
+        self.loc = vtkStaticCellLocator()
+        self.loc.SetDataSet(self.mesh)
+        self.loc.BuildLocator()
+        b = np.asarray(self.mesh.GetBounds()).reshape(3, 2)
+        self.reach = 4.0 * float(np.linalg.norm(b[:, 1] - b[:, 0])) + 1.0
+
+    def hit(self, origin, direction) -> np.ndarray | None:
+        if self.loc is None:
+            return None
+        from vtkmodules.vtkCommonCore import mutable
+
+        o = np.asarray(origin, float)
+        e = o + self.reach * np.asarray(direction, float) / np.linalg.norm(direction)
+        t, x, pc, sub = mutable(0.0), [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], mutable(0)
+        if not self.loc.IntersectWithLine(o.tolist(), e.tolist(), 1e-6, t, x, pc, sub):
+            return None
+        return np.array(x)
+
+
+def _ray(pose: Pose, cam: Camera, uv) -> tuple[np.ndarray, np.ndarray]:
+    """A pixel's viewing ray in the world: (camera centre, unit direction)."""
+    return pose.center, pose.R.T @ cam.rays(np.asarray(uv, float))
+
+
+def _midpoint(rays) -> np.ndarray | None:
+    """The point closest to all rays (least squares), if they are not nearly parallel (< 1 deg)."""
+    if len(rays) < 2:
+        return None
+    D = np.array([d for _o, d in rays])
+    if np.degrees(np.arccos(np.clip(np.min(D @ D.T), -1, 1))) < 1.0:
+        return None
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for o, d in rays:
+        M = np.eye(3) - np.outer(d, d)
+        A += M
+        b += M @ o
+    return np.linalg.solve(A, b)
+
+
+def _tiepoints(project: Project, out: SceneData, surface: _Surface) -> None:
+    """Tie points placed in 3D: the rays of their reference clicks cast onto the model (a tie point's
+    reference clicks often come from one camera station, too close to triangulate), else the point
+    nearest to all their clicks' rays; flagged when the registration left them out or dropped a click."""
+    from ..io.tiepoints import read_tiepoints
+
+    P = project.paths
+    if not P.tiepoints.is_file():
+        return
+    poses = {n: pc for n, pc in out.reference.items()}
+    for kind in ("prior", "localized", "pseudo_gt"):  # the best query pose wins
+        for n, pose in out.query_poses.get(kind, {}).items():
+            poses[n] = (pose, out.cameras.get(n))
+    for tp in read_tiepoints(P.tiepoints):
+        obs = [o for o in tp.observations if o.image in poses and poses[o.image][1] is not None]
+        rays = [_ray(*poses[o.image], (o.x, o.y)) for o in obs]
+        hits = [h for o, r in zip(obs, rays) if o.image.startswith("reference/") and (h := surface.hit(*r)) is not None]
+        X = np.mean(hits, axis=0) if hits else _midpoint(rays)
+        if X is not None:
+            out.tiepoints[tp.id] = X
+    reg = P.stage("register") / "registration.json"
+    out.tiepoint_source = "tiepoints.json (not registered yet)"
+    if reg.is_file():
+        try:
+            d = json.loads(reg.read_text())
+            table, bad = d.get("tiepoints") or {}, d.get("bad_tiepoints") or {}
+        except (json.JSONDecodeError, AttributeError) as e:
+            raise GtkitError(f"unreadable registration report ({e})", reg) from None
+        out.tiepoints_flagged = {t for t in out.tiepoints if t in bad or not (table.get(t) or {}).get("in_final_ba", False)}
+        out.tiepoint_source = "work/register/registration.json"
+
+
+def read_tracks_csv(path: Path) -> list[dict]:
+    """The rows of ``exports/tracks.csv`` (gtkit track; ``#`` lines are comments)."""
+    lines = [ln for ln in Path(path).read_text(encoding="utf-8").splitlines() if ln.strip() and not ln.startswith("#")]
+    return list(csv.DictReader(lines))
+
+
+def _targets(project: Project, out: SceneData, surface: _Surface) -> None:
+    """Targets: the tracker's placed points (``exports/tracks.csv``, CRS coordinates) with the line
+    of sight from the photo's camera and one track per label and sequence; clicks it could not place,
+    or not yet tracked (``detections.csv``), as the zoom camera's ray to the model (needs the rig
+    calibration)."""
+    from ..track.calibrate import wide_name_for
+
+    P = project.paths
+    origin = np.asarray(project.frame.origin, float)
+    clicks = []
+    if P.tracks.is_file():
+        for r in read_tracks_csv(P.tracks):
+            seq = r["image"].rsplit("/", 1)[0] if "/" in r.get("image", "") else ""
+            eye = pose_of(out, wide_name_for(r.get("image", "")) or r.get("image"))[0]
+            if r.get("status") == "ok" and r.get("x"):
+                xyz = np.array([float(r["x"]), float(r["y"]), float(r["z"])]) - origin
+                t = float(r["time"]) if r.get("time") else np.inf
+                out.targets.append({"label": r["label"], "sequence": seq, "image": r["image"], "time": t, "xyz": xyz,
+                                    "eye": None if eye is None else eye.center})
+            else:
+                clicks.append((r["image"], float(r["u"]), float(r["v"]), r.get("label", "")))
+    elif P.detections.is_file():
+        from ..track.targets import read_detections
+
+        clicks = [(d.image, d.u, d.v, d.label) for d in read_detections(P.detections)]
+    by_track: dict[tuple[str, str], list] = {}
+    for t in out.targets:
+        by_track.setdefault((t["label"], t["sequence"]), []).append((t["time"], t["image"], t["xyz"]))
+    out.tracks = {k: np.array([p[2] for p in sorted(v, key=lambda p: p[:2])]) for k, v in by_track.items()}
+    if clicks and P.rig.is_file():
+        from ..io.exif import read_photo_meta
+        from ..track.rig import Rig
+
+        rig = Rig.load(P.rig)
+        for image, u, v, label in clicks:
+            wide = pose_of(out, wide_name_for(image))[0]
+            if wide is None:
+                continue
+            meta = read_photo_meta(P.images / image)
+            zoom = rig.zoom_pose(wide)
+            o, d = _ray(zoom, rig.zoom_camera(meta.width, meta.height, meta.focal_mm), (u, v))
+            end = surface.hit(o, d)
+            out.unplaced.append({"image": image, "label": label, "eye": o,
+                                 "end": end if end is not None else o + 100.0 * d,  # 100 m of the ray
+                                 "on_model": end is not None})
+    elif clicks:
+        out.unplaced = [{"image": i, "label": lb, "eye": None, "end": None, "on_model": False} for i, _u, _v, lb in clicks]
 
 
 # --- drawing ---------------------------------------------------------------------------------
@@ -240,10 +393,37 @@ def build(plotter, scene: SceneData, settings: ViewSettings | None = None) -> di
             lines = pv.PolyData(np.concatenate([pts, pts + d]),
                                 lines=np.array([[2, k, k + len(pts)] for k in range(len(pts))]).ravel())
             actors["gcp_residuals"] = plotter.add_mesh(lines, color=COLORS["residual"], line_width=3, lighting=False)
-    for label, P in (scene.tracks.items() if "tracks" in on else ()):
-        if len(P) > 1:
-            actors[f"track_{label}"] = plotter.add_mesh(pv.lines_from_points(P), color=COLORS["track"], line_width=3,
-                                                        lighting=False)
+    if scene.tiepoints and "tiepoints" in on:
+        for flagged, colour in ((False, "tiepoint"), (True, "tiepoint_flagged")):
+            pts = [x for t, x in sorted(scene.tiepoints.items()) if (t in scene.tiepoints_flagged) == flagged]
+            if pts:
+                actors[colour] = plotter.add_mesh(pv.PolyData(np.array(pts)), color=COLORS[colour], point_size=7,
+                                                  render_points_as_spheres=True, lighting=False)
+    if "targets" in on or "tracks" in on:
+        for (label, seq), P in scene.tracks.items():
+            if len(P) > 1:
+                actors[f"track_{label}_{seq}"] = plotter.add_mesh(pv.lines_from_points(P), color=COLORS["track"],
+                                                                  line_width=3, lighting=False)
+        sights = [(t["eye"], t["xyz"]) for t in scene.targets if t["eye"] is not None]
+        sights += [(u["eye"], u["end"]) for u in scene.unplaced if u["eye"] is not None]
+        if sights:
+            ends = np.array([p for pair in sights for p in pair])
+            lines = np.array([[2, 2 * k, 2 * k + 1] for k in range(len(sights))]).ravel()
+            n_placed = sum(t["eye"] is not None for t in scene.targets)
+            for name, sl, colour in (("sight", slice(0, n_placed), "sight"), ("unplaced", slice(n_placed, None), "unplaced")):
+                sel = lines.reshape(-1, 3)[sl]
+                if len(sel):
+                    actors[name] = plotter.add_mesh(pv.PolyData(ends, lines=sel.ravel()), color=COLORS[colour],
+                                                    line_width=1 if name == "sight" else 2, lighting=False)
+        if scene.targets:
+            actors["targets"] = plotter.add_mesh(pv.PolyData(np.array([t["xyz"] for t in scene.targets])),
+                                                 color=COLORS["track"], point_size=10, render_points_as_spheres=True,
+                                                 lighting=False)
+    if s.legend:
+        entries = [[text.format(scale=s.residual_scale), COLORS[colour]] for actor, colour, text in LEGEND if actor in actors]
+        if entries:
+            plotter.add_legend(entries, bcolor="#20242a", border=False, size=(0.2, 0.03 * len(entries)),
+                               loc="upper left", face="circle")
     return actors
 
 
@@ -321,6 +501,10 @@ def describe(scene: SceneData) -> dict:
             "reference_centres": [p.center.tolist() for p, _c in scene.reference.values()],
             "trajectories": {k: len(v) for k, v in scene.queries.items()}, "error_source": scene.error_source,
             "n_gcps": len(scene.gcps), "n_tracks": len(scene.tracks),
+            "n_tiepoints": len(scene.tiepoints), "n_tiepoints_flagged": len(scene.tiepoints_flagged),
+            "tiepoint_source": scene.tiepoint_source, "n_targets": len(scene.targets),
+            "n_targets_unplaced": len(scene.unplaced),
+            "n_targets_unplaced_drawn": sum(u["eye"] is not None for u in scene.unplaced),
             "seconds": {k: round(v, 3) for k, v in scene.seconds.items()}}
 
 
