@@ -86,26 +86,75 @@ w.close()
 """
 
 
+def _run_view(root: Path, size: str, env: dict) -> dict:
+    r = subprocess.run([sys.executable, "-m", "gtkit.cli", "view", str(root), "--size", size, "--out", str(root / "reports")],
+                       env=env, capture_output=True, text=True, check=True)
+    return json.loads(r.stdout)
+
+
+def _run_tab(root: Path, env: dict) -> dict:
+    r = subprocess.run([sys.executable, "-c", GUI, str(root), str(ROOT)], env=env, capture_output=True, text=True, check=True)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def _load() -> str:
+    return ", ".join(f"{v:.1f}" for v in os.getloadavg())
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("project")
     ap.add_argument("--preset", default="medium")
     ap.add_argument("--size", default="1280x800")
+    ap.add_argument("--repeat", type=int, default=3, help="measure each case this many times (median and worst)")
+    ap.add_argument("--json", help="also write every run's figures here")
     a = ap.parse_args()
     root = Path(a.project)
     if not (root / "project.toml").is_file():
         scene_only_project(root, a.preset)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    view = subprocess.run([sys.executable, "-m", "gtkit.cli", "view", str(root), "--size", a.size,
-                           "--out", str(root / "reports")], env=env, capture_output=True, text=True, check=True)
-    v = json.loads(view.stdout)
-    gui = subprocess.run([sys.executable, "-c", GUI, str(root), str(ROOT)], env=env, capture_output=True, text=True,
-                         check=True)
-    g = json.loads(gui.stdout.strip().splitlines()[-1])
-    print(json.dumps({"gtkit_view": {k: v[k] for k in ("open_s", "load_s", "build_s", "first_frame_s", "frame_ms_median",
-                                                       "frame_with_readback_ms_median", "triangles", "n_reference_cameras",
-                                                       "trajectories", "max_rss_mb")},
-                      "annotator_tab": g}, indent=1))
+    cache = root / "work" / "view"
+
+    def fresh():
+        for f in cache.glob("model_*.npz"):
+            f.unlink()
+
+    runs: dict[str, list[dict]] = {k: [] for k in ("view_first", "view_cached", "tab_first", "tab_cached")}
+    loads = [_load()]
+    for _ in range(a.repeat):
+        fresh()
+        runs["view_first"].append(_run_view(root, a.size, env))
+        runs["view_cached"].append(_run_view(root, a.size, env))
+        fresh()
+        runs["tab_first"].append(_run_tab(root, env))
+        runs["tab_cached"].append(_run_tab(root, env))
+        loads.append(_load())
+    v = runs["view_cached"][0]
+    print(f"{root}: model {v['triangles'][0]:,} triangles shown as {v['triangles'][1]:,}; {v['n_reference_cameras']} "
+          f"reference cameras; trajectories {v['trajectories']}; {v.get('n_tiepoints', 0)} tie points; "
+          f"{v['n_gcps']} GCPs; {v.get('n_targets', 0)} targets")
+    print(f"load average (1, 5, 15 min) before and after each round: {' | '.join(loads)}; {os.cpu_count()} cores")
+    print(f"median / worst of {a.repeat} runs, each in fresh processes:\n")
+    print("| case | open s | frame ms while orbiting | peak memory MB |\n|---|---|---|---|")
+
+    def mw(xs):
+        xs = sorted(xs)
+        return f"{xs[len(xs) // 2]:.2f} / {xs[-1]:.2f}" if len(xs) % 2 else f"{(xs[len(xs) // 2 - 1] + xs[len(xs) // 2]) / 2:.2f} / {xs[-1]:.2f}"
+
+    for key, label in (("view_first", f"`gtkit view` {a.size}, first open (no cache)"),
+                       ("view_cached", f"`gtkit view` {a.size}, cached"),
+                       ("tab_first", "annotator 3D tab, first open (no cache)"), ("tab_cached", "annotator 3D tab, cached")):
+        rs = runs[key]
+        if key.startswith("view"):
+            print(f"| {label} | {mw([r['open_s'] for r in rs])} (load {mw([r['load_s'] for r in rs])}) | "
+                  f"{mw([r['frame_ms_median'] for r in rs])} render, {mw([r['frame_with_readback_ms_median'] for r in rs])} "
+                  f"with read-back | renderer {mw([r['max_rss_mb'] for r in rs])} |")
+        else:
+            print(f"| {label} | {mw([r['tab_open_s'] for r in rs])} | {mw([r['frame_ms_median'] for r in rs])} "
+                  f"(p90 {mw([r['frame_ms_p90'] for r in rs])}) into the tab, {rs[0]['view_px'][0]}x{rs[0]['view_px'][1]} | "
+                  f"GUI {mw([r['max_rss_mb'] for r in rs])} + renderer |")
+    if a.json:
+        Path(a.json).write_text(json.dumps({"loads": loads, "runs": runs}, indent=1))
 
 
 if __name__ == "__main__":

@@ -301,12 +301,17 @@ def view_model(project, max_triangles: int):
         return _textured_parts(V, rgb, uv, faces, fuv, parts, textures, materials), n, n
     colours = _vertex_colours(V, rgb, uv, faces, fuv, parts, textures, materials)
     verts, tri, col = decimate(V, faces, colours, max_triangles)
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    for old in cache_dir.glob("model_*.npz"):
-        old.unlink(missing_ok=True)
-    with atomic_path(cache) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, vertices=verts.astype(np.float32), faces=tri.astype(np.int32), rgb=col, n_in=n)
+    try:
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        for old in cache_dir.glob("model_*.npz"):
+            old.unlink(missing_ok=True)
+        with atomic_path(cache) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, vertices=verts.astype(np.float32), faces=tri.astype(np.int32), rgb=col, n_in=n)
+    except OSError as e:  # a read-only project is shown all the same, decimated again next time
+        import logging
+
+        logging.getLogger(__name__).warning("3D view: cannot keep the model cache (%s)", e)
     pd = _polydata(verts, tri)
     pd.point_data["rgb"] = col
     return [(pd, None)], n, len(tri)
