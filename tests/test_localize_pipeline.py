@@ -43,12 +43,11 @@ def test_render_db_depth_is_metric_and_resume_is_per_view(site):
     assert len(read_poses(out / "poses.txt")) == len(kept)
     # nadir views over the plane see depth = 120 m along the optical axis (boxes aside)
     nadir = [v for v in kept if v["paper_pitch"] == 0.0]
-    with np.load(out / "depth" / f"{nadir[0]['name']}.npz") as z:
-        d = z["depth"]
+    d = database.read_depth(out / "depth" / f"{nadir[0]['name']}.npz")
     assert d.dtype == np.float32 and abs(float(np.nanmedian(d)) - 120.0) < 0.01
     # resume: three views lost -> exactly those three are rendered again, identically
     lost = [v["name"] for v in kept[:3]]
-    before = {n: np.load(out / "depth" / f"{n}.npz")["depth"] for n in lost}
+    before = {n: database.read_depth(out / "depth" / f"{n}.npz") for n in lost}
     for n in lost:
         (out / "depth" / f"{n}.npz").unlink()
     (out / "stage.json").unlink()
@@ -56,7 +55,7 @@ def test_render_db_depth_is_metric_and_resume_is_per_view(site):
     rec = json.loads((out / "stage.json").read_text())
     assert rec["summary"]["n_rendered"] == 3
     for n in lost:
-        assert np.array_equal(np.load(out / "depth" / f"{n}.npz")["depth"], before[n], equal_nan=True)
+        assert np.array_equal(database.read_depth(out / "depth" / f"{n}.npz"), before[n], equal_nan=True)
 
 
 def test_changing_the_pitch_levels_keeps_the_views_and_features_on_disk(site, tmp_path):
@@ -149,8 +148,8 @@ def test_db_views_without_depth_fail_the_query_and_the_run_goes_on(site):
         for v in broken:
             f = ddir / f"{v}.npz"
             shutil.copy(f, backup / v.replace("/", "_"))
-            d = np.load(f)["depth"]
-            np.savez(f, depth=np.full_like(d, np.nan), valid_fraction=1.0)
+            d = database.read_depth(f)
+            database.write_depth(f, np.full_like(d, np.nan), 1.0)
         s = localize.LocalizeSettings(query_glob="queries/seq1/000[12]_W.jpg", fallback_rounds=0)
         out = localize.run(site, s, ablation="broken-depth", executor=ExecutorSettings("serial"))
         s1 = localize.LocalizeSettings(query_glob="queries/seq1/0001_W.jpg")  # default: one fallback round
@@ -179,7 +178,7 @@ def test_dask_local_cluster_renders_and_localizes_like_local_processes(site):
     pytest.importorskip("dask.distributed")
     out = site / "work" / "render_db"
     views = [v for v in json.loads((out / "views.json").read_text())["views"] if v["kept"]][:2]
-    before = [np.load(out / "depth" / f"{v['name']}.npz")["depth"] for v in views]
+    before = [database.read_depth(out / "depth" / f"{v['name']}.npz") for v in views]
     ex = make_executor(ExecutorSettings("dask", 2))   # two spawned worker processes, one GL context each
     try:
         from dataclasses import asdict
@@ -191,7 +190,7 @@ def test_dask_local_cluster_renders_and_localizes_like_local_processes(site):
         ex.close()
     assert [r[0][0] for r in res] == [v["name"] for v in views]
     for v, d in zip(views, before):
-        assert np.array_equal(np.load(out / "depth" / f"{v['name']}.npz")["depth"], d, equal_nan=True)
+        assert np.array_equal(database.read_depth(out / "depth" / f"{v['name']}.npz"), d, equal_nan=True)
     s = localize.LocalizeSettings(query_glob="queries/seq1/000[12]_W.jpg")
     o = localize.run(site, s, ablation="dask-check", executor=ExecutorSettings("dask", 2))
     a = read_poses(o / "poses.txt")
@@ -235,7 +234,7 @@ def test_tiled_model_renders_the_same_database_views(site):
     try:
         for v in views:
             d = database.render_view(r, database.db_camera(_db_settings()), v).depth
-            ref = np.load(out / "depth" / f"{v.name}.npz")["depth"]
+            ref = database.read_depth(out / "depth" / f"{v.name}.npz")
             both = np.isfinite(d) & np.isfinite(ref)
             assert both.mean() > 0.49 and (np.isfinite(d) == np.isfinite(ref)).mean() > 0.999
             assert np.abs(d[both] - ref[both]).max() < 0.02

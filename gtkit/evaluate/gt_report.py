@@ -22,6 +22,14 @@ def truth_errors(estimated: dict[str, Pose], truth_poses: Path, names: list[str]
     return {"per_image": errs, **medians(errs), **recall(errs, ((0.05, 0.05), (0.1, 0.1), (0.5, 0.5), (1.0, 1.0)))}
 
 
+def sigma_calibration(per_image: dict) -> float | None:
+    """Share of registered photos whose position error vs truth is within twice their stated
+    position sigma (``sigma_pos_m``, the 1-sigma radius); a calibrated sigma puts about 95 % there."""
+    pairs = [(e["pos_err_m"], e["sigma_pos_m"]) for e in per_image.values()
+             if e.get("pos_err_m") is not None and e.get("sigma_pos_m")]
+    return float(np.mean([err <= 2 * sig for err, sig in pairs])) if pairs else None
+
+
 def read_point_cloud(path: Path, frame: GeoFrame, crs: str | None = None) -> np.ndarray:
     """A LAS/LAZ/PLY cloud in the project's local frame; ``crs`` defaults to the file's own CRS,
     else the project's (:func:`gtkit.io.pointcloud.read_point_cloud`)."""
@@ -100,6 +108,10 @@ def run(project, settings: ReportSettings | None = None) -> dict:
             rep["per_image"][n].update(e)
         checks["rows"] += [f"| median position error vs truth | {_fmt(rep['median_pos_err_m'])} m |",
                            f"| median rotation error vs truth | {_fmt(rep['median_rot_err_deg'])} ° |"]
+        within = sigma_calibration(rep["per_image"])
+        if within is not None:
+            rep["share_within_2sigma"] = within
+            checks["rows"].append(f"| position errors within 2 sigma (calibrated: ~95 %) | {100 * within:.0f} % |")
         if rep.get("reference_block") is not None:
             rp = read_poses(P.stage(REFERENCE_STAGE) / "poses.txt")
             rt = truth_errors(rp, truth, sorted(rp))
