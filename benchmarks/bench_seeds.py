@@ -10,8 +10,9 @@ all seeds (the figure the targets are stated on). No figure of gtkit's should be
     python benchmarks/bench_seeds.py ... --code /path/to/other/checkout    # before / after
     python benchmarks/bench_seeds.py ... --rerun localize                    # redo that stage only
 
-``--rerun`` deletes the named stages' outputs in existing projects first (localize: the localization
-runs, keeping the rendered database; pseudo_gt: SfM of both blocks and the registration; track),
+``--rerun`` deletes the named stages' outputs in existing projects first (localize: the rendered
+database, its features and the localization runs; pseudo_gt: SfM of both blocks and the registration;
+track),
 so a code change is measured on the same sites. Wall seconds include the machine's other load:
 quote them as idle only when nothing else ran.
 """
@@ -31,7 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 RERUN = {  # stage -> work folders (and reports) removed so the stage runs again
-    "localize": ["work/localize", "work/track", "reports/localization.json"],
+    "localize": ["work/render_db", "work/localize_db", "work/localize", "work/track", "reports/localization.json"],
     "pseudo_gt": ["work/sfm_reference", "work/sfm_queries", "work/register", "work/rig", "work/export_dsm",
                   "work/export_ortho", "work/export_mesh_obj", "work/export_coordinates", "work/track"],
     "track": ["work/track"],
