@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -210,3 +211,140 @@ def test_built_model_never_replaces_a_delivered_one_unasked(tmp_path):
     assert Project.load(proj.paths.root).config["model"]["source"] == "built"
     assert load_model(reference_model(proj.paths), frame).bounds()[0, 2] == 5.0      # the built one now
     assert load_model(proj.paths.model / "delivered" / "reference.obj", frame).bounds()[0, 2] == 0.0
+
+
+def test_tiled_surface_and_tiled_model(built, tmp_path):
+    """A site wider than ``tile_m`` is reconstructed tile by tile (memory bounded by a tile) and also
+    written as a tiled model (ContextCapture layout, gtkit.io.tiled): the tiled surface meets the same
+    accuracy against the true world as the single one, and the tiled model's DSM (read back by
+    rasterio) is the single OBJ's DSM."""
+    import rasterio
+    from dataclasses import replace
+
+    from gtkit.evaluate.model import dsm_vs_truth
+    from gtkit.export import dsm
+    from gtkit.model.build import run as build
+
+    root0, _ = built
+    root = tmp_path / "site"
+    shutil.copytree(root0, root, ignore=shutil.ignore_patterns("exports", "reports"))
+    summary = build(root, replace(FAST, tile_m=120.0, max_triangles=50_000), force=True, show=False)  # depth maps reused
+    assert summary["seconds"]["depth"] < 10 and summary["surface_tiles"] >= 4
+    proj = Project.load(root)
+    tiles = root / proj.config["model"]["tiled"]
+    assert (tiles / "metadata.xml").is_file() and len(list((tiles / "Data").iterdir())) >= 4
+    s = dsm.DsmSettings(resolution=0.5)
+    single = dsm.run(proj, s, input=root / "model" / "reference.obj", out=tmp_path / "single.tif")
+    tiled = dsm.run(proj, s, input=tiles, out=tmp_path / "tiled.tif")
+    with rasterio.open(single) as a, rasterio.open(tiled) as b:
+        ha, hb = a.read(1), b.read(1)
+        assert a.transform == b.transform and a.nodata == b.nodata
+    both = (ha != a.nodata) & (hb != b.nodata)
+    d = np.abs(ha[both] - hb[both])                # float32 rendering from another origin: measured max 2 mm
+    assert np.array_equal(ha == a.nodata, hb == b.nodata) and np.median(d) < 1e-4 and d.max() < 0.01
+    m = dsm_vs_truth(root, single)
+    print("tiny built model, surface in", summary["surface_tiles"], "tiles, vs true world:", json.dumps(m))
+    assert m["completeness"] > 0.85
+    assert m["off_edges"]["median"] < 0.10 and m["off_edges"]["p95"] < 0.8
+    assert abs(m["bias"]) < 0.05
+
+
+def _welded_model(root):
+    """The built model as one mesh (vertices welded across its parts)."""
+    from gtkit.io.mesh import load_model
+
+    mesh = load_model(root / "model" / "reference.obj", Project.load(root).frame)
+    Vs, Fs, nv = [], [], 0
+    for p in mesh.parts:
+        Vs.append(p.vertices)
+        Fs.append(p.faces + nv)
+        nv += len(p.vertices)
+    V, inv = np.unique(np.round(np.concatenate(Vs), 4), axis=0, return_inverse=True)
+    return V, inv.reshape(-1)[np.concatenate(Fs)]
+
+
+def test_colour_balancing_at_seams(built):
+    """Photos with different exposures (a gain of 0.8-1.2 per photo and channel put on the tiny sample's
+    photos) leave colour jumps at the texture seams; the solved gains undo the exposures (up to one
+    common factor) and the seams' median colour jump falls back to what it is without them."""
+    from gtkit.model import texture
+    from gtkit.model.views import load_image, load_views
+
+    root, _ = built
+    proj = Project.load(root)
+    views, _ = load_views(proj, FAST)
+    V, F = _welded_model(root)
+    names, best = texture.choose_views(V, F, views)
+    index = {n: k for k, n in enumerate(names)}
+    exposure = np.random.default_rng(7).uniform(0.8, 1.2, (len(names), 3))
+
+    def exposed(v):
+        return np.clip(load_image(proj, v, gray=False) * exposure[index[v.name]] + 0.5, 0, 255).astype(np.uint8)
+
+    plain = texture.seam_colours(V, F, views, names, best, lambda v: load_image(proj, v, gray=False))
+    sc = texture.seam_colours(V, F, views, names, best, exposed)
+    gains = texture.colour_gains(sc, len(names))
+    seen = np.unique(sc["a"])
+    residual = np.log(gains[seen] * exposure[seen])
+    residual -= np.median(residual, axis=0)
+    before, after = texture.seam_difference(sc), texture.seam_difference(sc, gains)
+    base, base_balanced = texture.seam_difference(plain), texture.seam_difference(plain, texture.colour_gains(plain, len(names)))
+    print(f"seam |dRGB| median: one exposure {base:.2f} (balanced {base_balanced:.2f}); exposures 0.8-1.2 "
+          f"{before:.2f} -> balanced {after:.2f}; gain error (log) median {np.median(np.abs(residual)):.4f}, "
+          f"max {np.abs(residual).max():.4f} over {len(seen)} photos, {len(sc['a'])} seam edges")
+    assert len(sc["a"]) > 1000 and len(seen) > 30
+    assert np.median(np.abs(residual)) < 0.02 and np.abs(residual).max() < 0.08   # exposures' log spread: 0.115
+    assert after < 0.7 * before and after < base + 1.0
+    assert base_balanced < base + 0.5                                              # one exposure: no harm
+
+
+def test_build_killed_during_depth_maps_resumes(built, tmp_path):
+    """``gtkit model build`` SIGKILLed while it computes depth maps, then run again: the maps finished
+    before the kill are kept (same files, same mtimes), only the others are computed, and the model
+    meets the same accuracy against the true world."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from gtkit.evaluate.model import dsm_vs_truth
+    from gtkit.export import dsm
+    from gtkit.model import depth as D
+
+    root0, summary0 = built
+    root = tmp_path / "site"
+    skip = {root0 / "model", root0 / "work" / "model", root0 / "exports", root0 / "reports"}
+    shutil.copytree(root0, root, ignore=lambda d, names: [n for n in names if Path(d) / n in skip])
+    cmd = [sys.executable, "-c", "import sys; from gtkit.cli import main; sys.exit(main())", "model", "build", str(root),
+           "--max-image-size", str(FAST.max_image_size), "--max-triangles", str(FAST.max_triangles)]
+    def maps():
+        return sorted(p for p in (root / "work" / "model" / "depth").glob("*/*.npz") if not p.name.startswith("."))
+
+    # to keep the test short, the first 30 maps are the fixture's (same settings, so the same folder)
+    src = next((root0 / "work" / "model" / "depth").iterdir())
+    for p in sorted(src.glob("*.npz"))[:30]:
+        (root / "work" / "model" / "depth" / src.name).mkdir(parents=True, exist_ok=True)
+        shutil.copy2(p, root / "work" / "model" / "depth" / src.name / p.name)
+    env = dict(os.environ, GTKIT_PROGRESS="0")
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t0 = time.time()
+    while len(maps()) < 34 and proc.poll() is None and time.time() - t0 < 300:
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    kept = {p: p.stat().st_mtime_ns for p in maps()}
+    assert 34 <= len(kept) < summary0["depth_maps"], len(kept)       # killed in the middle of the depth step
+    assert not (root / "model" / "reference.obj").exists()
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    after = maps()
+    assert len(after) == summary0["depth_maps"]
+    assert all(p.stat().st_mtime_ns == t for p, t in kept.items())       # not recomputed
+    assert not list((root / "work" / "model" / "depth").glob("*/.*.tmp*"))   # no half-written map left
+    assert all(np.isfinite(D.read_depth(p)).mean() > 0.2 for p in after)
+    m = dsm_vs_truth(root, dsm.run(Project.load(root), dsm.DsmSettings(resolution=0.5)))
+    print(f"killed after {len(kept)} of {len(after)} depth maps; resumed model vs true world:", json.dumps(m))
+    assert m["completeness"] > 0.85
+    assert m["off_edges"]["median"] < 0.10 and m["off_edges"]["p95"] < 0.8
+    assert abs(m["bias"]) < 0.05

@@ -30,11 +30,17 @@ from .views import block_dir, choose_neighbours, fusion_neighbours, load_image, 
 log = logging.getLogger(__name__)
 STAGE = "model"
 MODEL_FILE = "reference.obj"
+TILES_DIR = "tiles"          # the tiled copy of a large site's model, beside the OBJ
 DEPTH_VERSION = 2   # bump when the depth maps' method changes (finished maps of another version are not reused)
 
 
 def _peak_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+
+
+def _step_done(step: str, t: dict, mem: dict, what: str) -> None:
+    prev = max(v for k, v in t.items() if k != step and v <= t[step])
+    log.info("model build: %s done in %.0f s (%s); peak memory so far %.2f GB", step, t[step] - prev, what, mem[step])
 
 
 def _bar(total: int, desc: str, show: bool):
@@ -52,13 +58,20 @@ def depth_maps(project: Project, views, neighbours, settings: ModelSettings, fol
             gray[n] = load_image(project, views[n], gray=True)
         return gray[n]
 
+    for f in folder.glob(".*.tmp*"):      # a map being written when a run was killed
+        f.unlink(missing_ok=True)
     failed = {}
+    t0, done = time.time(), 0
     with _bar(len(neighbours), "depth maps", show) as bar:
-        for n, nb in neighbours.items():
+        for i, (n, nb) in enumerate(neighbours.items()):
             out = D.depth_file(folder, n)
             if out.is_file():
                 bar.update(1)
                 continue
+            if done and done % 25 == 0:
+                log.info("depth maps: %d of %d there, %d computed in this run (%.1f s a photo)", i, len(neighbours),
+                         done, (time.time() - t0) / done)
+            done += 1
             pair = [d for m in nb if (d := D.pair_depth(views[n], views[m], img(n), img(m), settings)) is not None]
             if len(pair) < settings.min_pair_agree:
                 failed[n] = f"only {len(pair)} neighbour pair(s) could be rectified"
@@ -150,6 +163,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     failed = depth_maps(project, views, neighbours, settings, folder, show)
     skipped.update(failed)
     t["depth"], mem["depth"] = time.time(), _peak_gb()
+    _step_done("depth", t, mem, f"{len(neighbours) - len(failed)} depth maps")
 
     xyz, rgb, toward, count = fuse(project, views, neighbours, settings, folder, show)
     if len(xyz) < 100:
@@ -157,27 +171,52 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     origin = np.asarray(project.frame.origin)
     fusion.write_laz(work / "points.laz", xyz + origin, rgb, project.frame.crs_spec)
     t["fusion"], mem["fusion"] = time.time(), _peak_gb()
+    _step_done("fusion", t, mem, f"{len(xyz)} points")
 
-    normals = surface.estimate_normals(xyz, toward, settings.voxel_m)
-    V, F = surface.poisson(xyz, normals, settings)
-    n_poisson = len(F)
-    V, F = surface.simplify(V, F, settings.max_triangles)
+    V, F, n_poisson, n_tiles = surface.tiled_surface(xyz, toward, settings, log=log)
+    n_points = len(xyz)
+    del xyz, rgb, toward, count
+    if not len(F):
+        raise GtkitError("the Poisson surface is empty after trimming", folder)
     t["surface"], mem["surface"] = time.time(), _peak_gb()
+    _step_done("surface", t, mem, f"{len(F)} triangles in {n_tiles} tile(s)")
 
     with _bar(len(views), "texture (visibility)", show) as bar:
         names, best = texture.choose_views(V, F, views, progress=bar)
-    parts = texture.textured_parts(V, F, views, names, best, lambda v: load_image(project, v, gray=False))
-    out = _write_model(project, Mesh(parts), use)
+    def rgb_of(v):
+        return load_image(project, v, gray=False)
+
+    seams = texture.seam_colours(V, F, views, names, best, rgb_of)
+    gains = texture.colour_gains(seams, len(names)) if settings.colour_balance else None
+    seam_diff = {"edges": int(len(seams["a"])), "before": round(texture.seam_difference(seams), 2),
+                 "after": round(texture.seam_difference(seams, gains), 2)}
+    log.info("colour at seams: median |dRGB| %.2f -> %.2f over %d seam edges", seam_diff["before"],
+             seam_diff["after"], seam_diff["edges"])
+    del seams
+    parts = texture.textured_parts(V, F, views, names, best, rgb_of, gains=gains)
+    mesh, n_parts = Mesh(parts), len(parts)
+    out = _write_model(project, mesh, use)
+    tiles = out.parent / TILES_DIR
+    if tiles.is_dir():
+        shutil.rmtree(tiles)
+    if n_tiles > 1:     # a large site: also the tiled model (ContextCapture layout), for memory-bounded readers
+        from ..io.tiled import write_tiled
+
+        write_tiled(mesh, tiles, project.frame.crs_spec, project.frame.origin, settings.tile_m)
+        project.config["model"]["tiled"] = str(tiles.relative_to(P.root))
+        project.save()
+    del mesh, parts
     t["texture"], mem["texture"] = time.time(), _peak_gb()
+    _step_done("texture", t, mem, f"{out.relative_to(P.root)}" + (f" and {n_tiles} tiles" if n_tiles > 1 else ""))
 
     steps = ["depth", "fusion", "surface", "texture"]
     prev, seconds = t["start"], {}
     for s in steps:
         seconds[s], prev = round(t[s] - prev, 1), t[s]
     summary = {"model": str(out.relative_to(P.root)), "photos": n_photos,
-               "depth_maps": len(neighbours) - len(failed), "skipped": skipped, "points": int(len(xyz)),
-               "poisson_triangles": int(n_poisson), "triangles": int(len(F)), "parts": len(parts),
-               "unseen_faces": int((best < 0).sum()), "seconds": seconds,
+               "depth_maps": len(neighbours) - len(failed), "skipped": skipped, "points": int(n_points),
+               "poisson_triangles": int(n_poisson), "triangles": int(len(F)), "parts": n_parts,
+               "surface_tiles": n_tiles, "unseen_faces": int((best < 0).sum()), "seam_colour_diff": seam_diff, "seconds": seconds,
                "peak_memory_gb": {k: round(v, 2) for k, v in mem.items()}}
     mark_stage_done(work, settings, inputs, **summary)
     return summary

@@ -23,5 +23,8 @@ class ModelSettings:
     voxel_m: float = 0.25             # fused points are averaged per voxel of this size
     poisson_depth: int = 0            # octree depth of the Poisson surface (0: cells of about 2 voxels)
     trim_m: float = 3.0               # surface farther than this from every fused point is cut away
-    max_triangles: int = 600_000      # simplification budget (pymeshlab quadric edge collapse)
+    max_triangles: int = 600_000      # simplification budget (pymeshlab quadric edge collapse), per surface tile
+    tile_m: float = 350.0             # a site wider than this is reconstructed (and written) in tiles of at most this size
+    tile_overlap_m: float = 20.0      # points this far around a tile go into its surface too
+    colour_balance: bool = True       # per-photo, per-channel gains that even out the colours at texture seams
     texture_size: int = 1024          # px, longest side of the photos the texture is cut from

@@ -56,6 +56,54 @@ def _compact(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return V[used], remap[F]
 
 
+def tile_boxes(xyz: np.ndarray, tile_m: float) -> list[np.ndarray]:
+    """(2, 2) min/max x, y of equal tiles covering the points, none wider than ``tile_m`` (one tile
+    when the points fit in one)."""
+    lo, hi = xyz[:, :2].min(0), xyz[:, :2].max(0)
+    n = np.maximum(1, np.ceil((hi - lo) / tile_m - 1e-9)).astype(int)
+    step = (hi - lo) / n
+    boxes = []
+    for i in range(n[0]):
+        for j in range(n[1]):
+            a = lo + step * (i, j)
+            b = np.where((i, j) == n - 1, hi, a + step)
+            boxes.append(np.stack([a, b]))
+    return boxes
+
+
+def tiled_surface(xyz: np.ndarray, toward: np.ndarray, settings: ModelSettings, keep_m: float = 1.0,
+                  log=None) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """(vertices, faces, Poisson triangles before simplification, tiles) of the site's surface,
+    reconstructed tile by tile (see the module docstring)."""
+    boxes = tile_boxes(xyz, settings.tile_m)
+    Vs, Fs, n_poisson, nv = [], [], 0, 0
+    for k, box in enumerate(boxes):
+        if len(boxes) == 1:
+            sel = np.arange(len(xyz))
+        else:
+            m = settings.tile_overlap_m
+            sel = np.flatnonzero(np.all((xyz[:, :2] >= box[0] - m) & (xyz[:, :2] <= box[1] + m), axis=1))
+            if len(sel) < 100:
+                continue
+        normals = estimate_normals(xyz[sel], toward[sel], settings.voxel_m)
+        V, F = poisson(xyz[sel], normals, settings)
+        del normals
+        if len(boxes) > 1:
+            c = V[F].mean(1)[:, :2]
+            F = F[np.all((c >= box[0] - keep_m) & (c <= box[1] + keep_m), axis=1)]
+            V, F = _compact(V, F)
+        n_poisson += len(F)
+        V, F = simplify(V, F, settings.max_triangles)
+        if log is not None and len(boxes) > 1:
+            log.info("surface tile %d/%d: %d points, %d triangles", k + 1, len(boxes), len(sel), len(F))
+        Vs.append(V)
+        Fs.append(F + nv)
+        nv += len(V)
+    if not Fs:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), 0, len(boxes)
+    return np.concatenate(Vs), np.concatenate(Fs), n_poisson, len(boxes)
+
+
 def simplify(V: np.ndarray, F: np.ndarray, max_triangles: int) -> tuple[np.ndarray, np.ndarray]:
     """Quadric edge collapse to at most ``max_triangles`` (boundaries and planarity kept)."""
     import pymeshlab

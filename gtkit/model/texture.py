@@ -6,7 +6,14 @@ by nearer surface. Among the photos that see it, the face takes the one with the
 it (``cos(angle) * (f / distance)^2``). The mesh is then split by photo: each part's texture is the
 crop of its (undistorted) photo that its faces cover, its uv the faces' projection into it. A face
 that no photo sees takes the best photo regardless of occlusion (it is inside trimmed support, so
-rare). No colour balancing between photos (the photos of one flight share one exposure here).
+rare).
+
+Colour balancing (:func:`colour_gains`): where two faces that share an edge take their texture from
+different photos (a seam), the edge's midpoint is read in both photos; per photo and channel a gain
+is solved by least squares from the median log colour ratio of every pair of photos meeting at
+seams (weighted by how many seam edges they share, weakly pulled to 1 so the mean brightness
+stays), and each part's texture is multiplied by its photo's gains. :func:`seam_difference`
+measures the colour jump a viewer sees across the seams (texels just inside either face).
 """
 from __future__ import annotations
 
@@ -77,9 +84,110 @@ def choose_views(V: np.ndarray, F: np.ndarray, views: dict[str, View], vis_scale
     return names, best
 
 
+def seam_edges(F: np.ndarray, best: np.ndarray, max_edges: int | None = None, seed: int = 0) -> np.ndarray:
+    """(n, 4) int: vertex i, vertex j, face A, face B of the edges whose two faces take their texture
+    from different photos (both seen); at most ``max_edges`` (a fixed random subset)."""
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    f = np.tile(np.arange(len(F)), 3)
+    e.sort(axis=1)
+    key = e[:, 0].astype(np.int64) * (int(F.max()) + 1) + e[:, 1]
+    order = np.argsort(key, kind="stable")
+    key, e, f = key[order], e[order], f[order]
+    same = np.flatnonzero(key[1:] == key[:-1])           # manifold edges: the two faces are consecutive
+    fa, fb = f[same], f[same + 1]
+    seam = (best[fa] != best[fb]) & (best[fa] >= 0) & (best[fb] >= 0)
+    out = np.stack([e[same, 0], e[same, 1], fa, fb], 1)[seam]
+    if max_edges is not None and len(out) > max_edges:
+        out = out[np.sort(np.random.default_rng(seed).choice(len(out), max_edges, replace=False))]
+    return out
+
+
+def _sample(views: dict[str, View], names: list[str], load_rgb, which: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """(n, 3) float colours of world points ``X[i]`` in view ``which[i]`` (bilinear; NaN outside), each
+    photo loaded once."""
+    import cv2
+
+    out = np.full((len(X), 3), np.nan)
+    for k in np.unique(which):
+        idx = np.flatnonzero(which == k)
+        v = views[names[k]]
+        uv, z = _project(v, X[idx])
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= v.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= v.height - 1)
+        if not ok.any():
+            continue
+        img = load_rgb(v).astype(np.float32)
+        m = uv[ok].astype(np.float32)
+        out[idx[ok]] = cv2.remap(img, m[:, 0][None], m[:, 1][None], cv2.INTER_LINEAR)[0]
+    return out
+
+
+def seam_colours(V: np.ndarray, F: np.ndarray, views: dict[str, View], names: list[str], best: np.ndarray, load_rgb,
+                 max_edges: int = 200_000, inset: float = 0.25) -> dict:
+    """Colours at the seams, each photo read once: for every seam edge (photos ``a`` and ``b`` of its
+    two faces) its midpoint in both photos (``mid_a``, ``mid_b``: the same surface point, for the
+    gains) and the texel ``inset`` of the way from the midpoint to each face's centre, each in its
+    own photo (``in_a``, ``in_b``: what a viewer sees on either side of the seam)."""
+    se = seam_edges(F, best, max_edges)
+    mid = 0.5 * (V[se[:, 0]] + V[se[:, 1]])
+    pa = mid + inset * (V[F[se[:, 2]]].mean(1) - mid)
+    pb = mid + inset * (V[F[se[:, 3]]].mean(1) - mid)
+    a, b = best[se[:, 2]], best[se[:, 3]]
+    c = _sample(views, names, load_rgb, np.concatenate([a, b, a, b]), np.concatenate([mid, mid, pa, pb]))
+    n = len(se)
+    return {"a": a, "b": b, "mid_a": c[:n], "mid_b": c[n:2 * n], "in_a": c[2 * n:3 * n], "in_b": c[3 * n:]}
+
+
+def colour_gains(sc: dict, n_photos: int, min_edges: int = 20, reg: float = 0.05) -> np.ndarray:
+    """(n_photos, 3) per-photo, per-channel gains that even out the seams' colours (from
+    :func:`seam_colours`; 1 where a photo meets no other at enough seam edges)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import lsqr
+
+    gains = np.ones((n_photos, 3))
+    a, b, ca, cb = sc["a"], sc["b"], sc["mid_a"], sc["mid_b"]
+    ok = np.all(np.isfinite(ca) & np.isfinite(cb) & (ca > 8) & (cb > 8) & (ca < 250) & (cb < 250), axis=1)
+    a, b, ca, cb = a[ok], b[ok], ca[ok], cb[ok]
+    if not len(a):
+        return gains
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    r = np.log(cb) - np.log(ca)                 # g_a c_a = g_b c_b: x_a - x_b = log(c_b / c_a)
+    r[a > b] *= -1                              # as x_lo - x_hi = log(c_hi / c_lo)
+    pair = lo.astype(np.int64) * n_photos + hi
+    up, inv, cnt = np.unique(pair, return_inverse=True, return_counts=True)
+    use = np.flatnonzero(cnt >= min_edges)
+    if not len(use):
+        return gains
+    order = np.argsort(inv, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(cnt)])
+    med = np.array([np.median(r[order[bounds[i]:bounds[i + 1]]], axis=0) for i in use])
+    pl, ph = up[use] // n_photos, up[use] % n_photos
+    w = np.sqrt(np.minimum(cnt[use], 400)).astype(np.float64)
+    n_p = len(use)
+    rows = np.concatenate([np.arange(n_p), np.arange(n_p), n_p + np.arange(n_photos)])
+    cols = np.concatenate([pl, ph, np.arange(n_photos)])
+    vals = np.concatenate([w, -w, np.full(n_photos, reg)])
+    A = coo_matrix((vals, (rows, cols)), shape=(n_p + n_photos, n_photos)).tocsr()
+    for c in range(3):
+        x = lsqr(A, np.concatenate([w * med[:, c], np.zeros(n_photos)]), atol=1e-10, btol=1e-10)[0]
+        gains[:, c] = np.exp(np.clip(x, np.log(0.5), np.log(2.0)))
+    return gains
+
+
+def seam_difference(sc: dict, gains: np.ndarray | None = None) -> float:
+    """Median |colour difference| (mean over RGB, 0-255) across the seams as the textures show it
+    (``in_a`` vs ``in_b`` of :func:`seam_colours`, times the photos' gains)."""
+    ca, cb = sc["in_a"], sc["in_b"]
+    if gains is not None:
+        ca, cb = np.clip(ca * gains[sc["a"]], 0, 255), np.clip(cb * gains[sc["b"]], 0, 255)
+    d = np.abs(ca - cb).mean(1)
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) if len(d) else float("nan")
+
+
 def textured_parts(V: np.ndarray, F: np.ndarray, views: dict[str, View], names: list[str], best: np.ndarray,
-                   load_rgb, pad: int = 2) -> list[MeshPart]:
-    """One textured part per photo that textures any face (``load_rgb(view)`` gives its undistorted RGB)."""
+                   load_rgb, pad: int = 2, gains: np.ndarray | None = None) -> list[MeshPart]:
+    """One textured part per photo that textures any face (``load_rgb(view)`` gives its undistorted RGB;
+    ``gains`` (per photo, per channel) multiply its texture)."""
     parts = []
     for k in np.unique(best[best >= 0]):
         v = views[names[k]]
@@ -94,6 +202,8 @@ def textured_parts(V: np.ndarray, F: np.ndarray, views: dict[str, View], names: 
         x1 = int(min(v.width, np.ceil(uv[:, 0].max() + 0.5) + pad))
         y1 = int(min(v.height, np.ceil(uv[:, 1].max() + 0.5) + pad))
         img = load_rgb(v)[y0:y1, x0:x1]
+        if gains is not None and not np.allclose(gains[k], 1.0):
+            img = np.clip(img * gains[k] + 0.5, 0, 255).astype(np.uint8)
         cw, ch = x1 - x0, y1 - y0
         tuv = np.stack([(uv[:, 0] + 0.5 - x0) / cw, 1.0 - (uv[:, 1] + 0.5 - y0) / ch], 1)
         parts.append(MeshPart(V[used], remap[f], uv=tuv, texture=np.ascontiguousarray(img),
