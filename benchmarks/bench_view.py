@@ -115,9 +115,9 @@ def main():
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     cache = root / "work" / "view"
 
-    def fresh():
-        for f in cache.glob("model_*.npz"):
-            f.unlink()
+    def fresh():  # as a project the view never opened: no model cache, no photo priors cache
+        for f in [*cache.glob("model_*.npz"), cache / "priors.npz"]:
+            f.unlink(missing_ok=True)
 
     runs: dict[str, list[dict]] = {k: [] for k in ("view_first", "view_cached", "tab_first", "tab_cached")}
     loads = [_load()]
@@ -146,7 +146,8 @@ def main():
                        ("tab_first", "annotator 3D tab, first open (no cache)"), ("tab_cached", "annotator 3D tab, cached")):
         rs = runs[key]
         if key.startswith("view"):
-            print(f"| {label} | {mw([r['open_s'] for r in rs])} (load {mw([r['load_s'] for r in rs])}) | "
+            print(f"| {label} | {mw([r['open_s'] for r in rs])} (load {mw([r['load_s'] for r in rs])}; CPU time "
+                  f"{mw([r['open_cpu_s'] for r in rs])}) | "
                   f"{mw([r['frame_ms_median'] for r in rs])} render, {mw([r['frame_with_readback_ms_median'] for r in rs])} "
                   f"with read-back | renderer {mw([r['max_rss_mb'] for r in rs])} |")
         else:

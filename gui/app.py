@@ -17,6 +17,10 @@ import sys
 def make_app():
     from PySide6.QtWidgets import QApplication
 
+    # gtkit's own renderer (the review) holds an EGL context in this process; after it, Qt's GLX
+    # contexts on X fail to become current ("QOpenGLWidget: Failed to make context current",
+    # measured with Mesa), which the interactive 3D tab needs: Qt's OpenGL on X goes through EGL too
+    os.environ.setdefault("QT_XCB_GL_INTEGRATION", "xcb_egl")
     return QApplication.instance() or QApplication(sys.argv[:1])
 
 

@@ -4,6 +4,7 @@ image (accept Y, reject X, needs work W) saved to ``review.json`` at once."""
 from __future__ import annotations
 
 import logging
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,23 @@ def to_qimage(rgb: np.ndarray) -> QImage:
     rgb = np.ascontiguousarray(rgb)
     h, w = rgb.shape[:2]
     return QImage(rgb.data, w, h, 3 * w, QImage.Format.Format_RGB888).copy()
+
+
+
+@contextmanager
+def own_gl():
+    """gtkit's renderer context made current for the block: the interactive 3D tab (pyvistaqt) leaves
+    Qt's OpenGL context current in this thread, and moderngl's draws into it crashed (measured: a
+    segmentation fault in moderngl's render). Left current afterwards, as it always was: moderngl's
+    ``__exit__`` releases the context rather than restoring the previous one (measured), and Qt makes
+    its own current whenever it paints."""
+    from gtkit.render.renderer import gl_context
+
+    try:
+        gl_context().__enter__()
+    except GtkitError:
+        pass  # no headless GL: the renderer reports it itself
+    yield
 
 
 class ReviewPage(QWidget):
@@ -118,7 +136,8 @@ class ReviewPage(QWidget):
             self.pose_label.setText("No poses: run `gtkit register`, or choose a pose file.")
             return False
         try:
-            self.scene = OverlayScene(self.project, self.pose_file)
+            with own_gl():
+                self.scene = OverlayScene(self.project, self.pose_file)
         except GtkitError as e:
             self.pose_label.setText(str(e))
             self.status.emit(str(e))
@@ -158,7 +177,8 @@ class ReviewPage(QWidget):
             return
         self.image = name
         if self._cache is None or self._cache[0] != name:
-            photo, rgb, valid, s = self.scene.render(name, self.max_side)
+            with own_gl():
+                photo, rgb, valid, s = self.scene.render(name, self.max_side)
             self._cache = (name, photo, rgb, valid, s, alignment(photo, rgb, valid, scale=s))
         a = self._cache[5]
         self.measure.setText(f"{name}: misalignment {a.misalignment_px:.2f} px (median local shift over {a.n_tiles} "

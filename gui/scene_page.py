@@ -2,13 +2,14 @@
 pseudo-GT, localized coloured by error), tie points, GCPs with residual vectors, targets with their
 tracks and lines of sight (:mod:`gtkit.view.scene`).
 
-VTK renders offscreen in a child process (:class:`gtkit.view.process.SceneProcess`; VTK and the
-annotator's own moderngl renderer must not share a process) and the tab shows the image it
-returns. A pyvistaqt ``QtInteractor`` is not used: it needs a native OpenGL window in this process
-(GLX under X), which Qt's offscreen platform cannot give and which would share Mesa with the review's
-renderer. Left drag orbits, right drag pans, the wheel zooms; "Look through photo" puts the view at
-the photo selected in the other tabs (also done when the tab is opened). The scene is built the first
-time the tab is shown, so the annotator opens as fast as before."""
+Two ways to show it (:func:`gui.scene_interactive.choose`): on a hardware OpenGL, a pyvistaqt
+``QtInteractor`` in the tab (:mod:`gui.scene_interactive`; VTK's own mouse handling); otherwise (CPU
+rendering, Qt's offscreen platform, no pyvistaqt) VTK renders offscreen through EGL in a child
+process (:class:`gtkit.view.process.SceneProcess`) and the tab shows the image it returns: left drag
+orbits, right drag pans, the wheel zooms. ``GTKIT_SCENE_VIEW=interactive|image`` chooses by hand.
+"Look through photo" puts the view at the photo selected in the other tabs (also done when the tab
+is opened). The scene is built the first time the tab is shown, so the annotator opens as fast as
+before."""
 from __future__ import annotations
 
 import time
@@ -63,6 +64,7 @@ class ScenePage(QWidget):
         self.frame_ms: list[float] = []
         self.open_s: float | None = None
         self.photo: str | None = None
+        self.backend, self.backend_why = "image", ""
         self._img = None
         self.view = SceneView(self)
         self.info = QLabel("the 3D scene is built when this tab is first shown")
@@ -85,8 +87,20 @@ class ScenePage(QWidget):
             return
         from gtkit.view.process import SceneProcess
 
-        w, h = max(self.view.width(), 320), max(self.view.height(), 240)
-        self.proc = SceneProcess(self.project.paths.root, w, h)
+        from .scene_interactive import InteractiveScene, choose
+
+        self.backend, self.backend_why = choose()
+        if self.backend == "interactive":
+            try:
+                self.proc = InteractiveScene(self.project.paths.root, self)
+                self.layout().replaceWidget(self.view, self.proc.widget)
+                self.view.hide()
+            except Exception as e:  # noqa: BLE001 - any failure: the image path still works
+                self.backend, self.backend_why = "image", f"the interactive view failed ({type(e).__name__}: {e})"
+                self.proc = None
+        if self.proc is None:
+            w, h = max(self.view.width(), 320), max(self.view.height(), 240)
+            self.proc = SceneProcess(self.project.paths.root, w, h)
         self.draw()
         self.open_s = self.proc.open_s + self.frame_ms[-1] / 1000
         i = self.proc.info
@@ -98,26 +112,36 @@ class ScenePage(QWidget):
             + f"; {i['n_tiepoints']} tie points ({i['n_tiepoints_flagged']} left out); {i['n_gcps']} GCPs; "
             f"{i['n_targets']} placed targets in {i['n_tracks']} tracks"
             + (f", {i['n_targets_unplaced']} clicks not placed" if i["n_targets_unplaced"] else "")
-            + f"; opened in {self.open_s:.2f} s. "
-            "Left drag: orbit, right drag: pan, wheel: zoom.")
+            + f"; opened in {self.open_s:.2f} s; {self.backend} view ({self.backend_why}). "
+            + ("Left drag: rotate, middle drag: pan, wheel: zoom." if self.backend == "interactive"
+               else "Left drag: orbit, right drag: pan, wheel: zoom."))
         self.status.emit(f"3D scene opened in {self.open_s:.2f} s")
+
+    def view_widget(self):
+        """The widget that shows the scene (the image label, or the interactive OpenGL widget)."""
+        return self.proc.widget if self.backend == "interactive" and self.proc is not None else self.view
 
     def image(self) -> np.ndarray:
         """The scene as last drawn (H, W, 3) uint8."""
+        if self.backend == "interactive" and self.proc is not None:
+            return self.proc.render()
         return self._img
 
     def draw(self):
         if self.proc is None:
             return
         t = time.perf_counter()
-        img = self.proc.render()
-        self._img = img
-        q = QImage(img.data, img.shape[1], img.shape[0], 3 * img.shape[1], QImage.Format.Format_RGB888).copy()
-        self.view.setPixmap(QPixmap.fromImage(q))
+        if self.backend == "interactive":
+            self.proc.draw()
+        else:
+            img = self.proc.render()
+            self._img = img
+            q = QImage(img.data, img.shape[1], img.shape[0], 3 * img.shape[1], QImage.Format.Format_RGB888).copy()
+            self.view.setPixmap(QPixmap.fromImage(q))
         self.frame_ms.append(1000 * (time.perf_counter() - t))
 
     def resized(self):
-        if self.proc is None or self._img is None:
+        if self.proc is None or self._img is None or self.backend != "image":
             return
         w, h = self.view.width(), self.view.height()
         if w >= 64 and h >= 64 and (self._img.shape[1], self._img.shape[0]) != (w, h):

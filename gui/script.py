@@ -64,13 +64,19 @@ def run_action(w, a: dict) -> dict:
     if a.get("locate") == "scene":  # the 3D tab's view and buttons on the screen
         sc = w.scene3d
         QApplication.processEvents()
-        v = sc.view
+        v = sc.view_widget()
         g = v.mapToGlobal(v.rect().topLeft())
         buttons = {b.text(): [(c := b.mapToGlobal(b.rect().center())).x(), c.y()]
                    for b in sc.findChildren(QPushButton)}
         return {"action": a, "photo": sc.photo, "view": [g.x(), g.y(), v.width(), v.height()],
                 "image_size": list(sc.image().shape[1::-1]) if sc.image() is not None else None, "buttons": buttons,
-                "open_s": sc.open_s}
+                "open_s": sc.open_s, "backend": sc.backend, "backend_why": sc.backend_why,
+                "camera": sc.proc.camera() if sc.proc is not None else None}
+    if a.get("locate") == "review":  # what the review tab shows (gtkit's own renderer)
+        rv = w.review
+        QApplication.processEvents()
+        return {"action": a, "image": rv.image,
+                "misalignment_px": float(rv._cache[5].misalignment_px) if rv._cache is not None else None}
     if "locate" in a:  # where photo pixels are on the screen, for drivers that click with real X events
         from PySide6.QtCore import QPointF
 

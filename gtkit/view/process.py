@@ -36,7 +36,10 @@ def _serve(conn, root: str, width: int, height: int, settings: dict) -> None:
         t2 = time.perf_counter()
         p.screenshot(None, return_img=True)  # the first frame (pyvista renders nothing before it)
         t_first = time.perf_counter() - t2
-        conn.send({"ok": True, "info": S.describe(sc) | {"load_s": t_load, "build_s": t_build, "first_frame_s": t_first}})
+        # CPU seconds of this process from its start (interpreter, imports, load, build, first frame; all
+        # threads): what the open costs on an idle core, whatever else the machine runs
+        conn.send({"ok": True, "info": S.describe(sc) | {"load_s": t_load, "build_s": t_build, "first_frame_s": t_first,
+                                                         "open_cpu_s": time.process_time()}})
     except Exception as e:  # noqa: BLE001 - reported to the parent as one line
         conn.send({"ok": False, "error": f"{type(e).__name__}: {e}", "trace": traceback.format_exc()})
         return
