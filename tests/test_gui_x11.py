@@ -76,6 +76,30 @@ def _wait_for(pred, timeout=15.0):
     return pred()
 
 
+def _photo_view_corr(shot, rect, photo) -> float:
+    """Correlation of the photo with the screen's view ``rect`` (x, y, w, h) of the model through it:
+    the same vertical field of view, so the photo spans the rect's height, centred."""
+    import cv2
+
+    x, y, w, h = rect
+    shown = shot[y:y + h, x:x + w]
+    ph, pw = photo.shape[:2]
+    cw = int(round(h * pw / ph))
+    crop = cv2.resize(shown[:, (w - cw) // 2:(w - cw) // 2 + cw], (pw, ph), interpolation=cv2.INTER_AREA)
+
+    def g(a):
+        return cv2.GaussianBlur(cv2.cvtColor(a, cv2.COLOR_BGR2GRAY).astype(float), (0, 0), 2).ravel()
+
+    return float(np.corrcoef(g(crop), g(photo))[0, 1])
+
+
+def _frustum_pixels(img, rect) -> int:
+    """Pixels of the reference cameras' frustum yellow (#ffd400) inside ``rect``."""
+    x, y, w, h = rect
+    img = img[y:y + h, x:x + w]
+    return int(((img[..., 2] > 230) & (np.abs(img[..., 1].astype(int) - 0xD4) < 20) & (img[..., 0] < 40)).sum())
+
+
 def _tiepoints(root):
     from gtkit.io.tiepoints import read_tiepoints
 
@@ -212,21 +236,11 @@ def test_scene_tab_on_xvfb(xserver, finished_demo, tmp_path):
         vx, vy, vw, vh = sc["view"]
         iw, ih = sc["image_size"]
         x0, y0 = vx + (vw - iw) // 2, vy + (vh - ih) // 2  # the rendered image, centred in the view
-        shown = shot[y0:y0 + ih, x0:x0 + iw]
-        photo = cv2.imread(str(site / "images" / sc["photo"]))
-        ph, pw = photo.shape[:2]
-        cw = int(round(ih * pw / ph))  # same vertical field of view: the photo spans the view's height
-        crop = cv2.resize(shown[:, (iw - cw) // 2:(iw - cw) // 2 + cw], (pw, ph), interpolation=cv2.INTER_AREA)
-
-        def g(a):
-            return cv2.GaussianBlur(cv2.cvtColor(a, cv2.COLOR_BGR2GRAY).astype(float), (0, 0), 2).ravel()
-
-        corr = np.corrcoef(g(crop), g(photo))[0, 1]
+        corr = _photo_view_corr(shot, (x0, y0, iw, ih), cv2.imread(str(site / "images" / sc["photo"])))
         assert corr > 0.7, corr
 
         def frustum_pixels(img):
-            img = img[vy:vy + vh, vx:vx + vw]
-            return int(((img[..., 2] > 230) & (np.abs(img[..., 1].astype(int) - 0xD4) < 20) & (img[..., 0] < 40)).sum())
+            return _frustum_pixels(img, (vx, vy, vw, vh))
 
         before = frustum_pixels(shot)
         _pointer(xserver, *sc["buttons"]["Top"], "click", "1")
@@ -248,10 +262,10 @@ def test_scene_tab_on_xvfb(xserver, finished_demo, tmp_path):
 
 def test_scene_tab_interactive_pyvistaqt_on_xvfb(xserver, finished_demo, tmp_path):
     """The 3D tab as a pyvistaqt QtInteractor (GTKIT_SCENE_VIEW=interactive; VTK renders into the
-    annotator's OpenGL widget on X, Mesa's GLX): a real click on the tab opens it through the selected
+    annotator's OpenGL widget on X, Qt's EGL on Mesa): a real click on the tab opens it through the selected
     photo (the X screen shows that photo's view of the model), "Top" shows the frusta, a real mouse drag
     turns the view (VTK's own mouse handling), and gtkit's own renderer (moderngl, EGL) in the same
-    process still renders the review aligned."""
+    process still renders the review aligned, after which the tab draws again."""
     pytest.importorskip("pyvistaqt")
     import cv2
 
@@ -281,26 +295,14 @@ def test_scene_tab_interactive_pyvistaqt_on_xvfb(xserver, finished_demo, tmp_pat
         _pointer(xserver, 1599, 999)
         time.sleep(0.5)
         shot = _screenshot(xserver, tmp_path / "through_photo.png")
-        vx, vy, vw, vh = sc["view"]
-        shown = shot[vy:vy + vh, vx:vx + vw]
-        photo = cv2.imread(str(site / "images" / sc["photo"]))
-        ph, pw = photo.shape[:2]
-        cw = int(round(vh * pw / ph))  # the photo's vertical field of view spans the widget's height
-        crop = cv2.resize(shown[:, (vw - cw) // 2:(vw - cw) // 2 + cw], (pw, ph), interpolation=cv2.INTER_AREA)
-
-        def g(a):
-            return cv2.GaussianBlur(cv2.cvtColor(a, cv2.COLOR_BGR2GRAY).astype(float), (0, 0), 2).ravel()
-
-        corr = np.corrcoef(g(crop), g(photo))[0, 1]
+        view = sc["view"]
+        vx, vy, vw, vh = view
+        corr = _photo_view_corr(shot, view, cv2.imread(str(site / "images" / sc["photo"])))
         assert corr > 0.7, corr
-
-        def frustum_pixels(img):
-            img = img[vy:vy + vh, vx:vx + vw]
-            return int(((img[..., 2] > 230) & (np.abs(img[..., 1].astype(int) - 0xD4) < 20) & (img[..., 0] < 40)).sum())
-
         _pointer(xserver, *sc["buttons"]["Top"], "click", "1")
         _pointer(xserver, 1599, 999)
-        top = _wait_for(lambda: (n := frustum_pixels(_screenshot(xserver, tmp_path / "top.png"))) > 500 and n, timeout=30)
+        top = _wait_for(lambda: (n := _frustum_pixels(_screenshot(xserver, tmp_path / "top.png"), view)) > 500 and n,
+                        timeout=30)
         assert top, "no camera frusta on the X screen after 'Top'"
         before = _screenshot(xserver, tmp_path / "top.png")[vy:vy + vh, vx:vx + vw]
         # a real drag with the left button: VTK's trackball turns the camera
@@ -330,10 +332,8 @@ def test_scene_tab_interactive_pyvistaqt_on_xvfb(xserver, finished_demo, tmp_pat
         assert sc2 is not None and sc2["photo"] == "queries/seq1/0001_W.jpg", sc2
         _pointer(xserver, 1599, 999)
         time.sleep(0.5)
-        shot = _screenshot(xserver, tmp_path / "through_photo2.png")[vy:vy + vh, vx:vx + vw]
-        photo2 = cv2.imread(str(site / "images" / sc2["photo"]))
-        crop2 = cv2.resize(shot[:, (vw - cw) // 2:(vw - cw) // 2 + cw], (pw, ph), interpolation=cv2.INTER_AREA)
-        corr2 = np.corrcoef(g(crop2), g(photo2))[0, 1]
+        corr2 = _photo_view_corr(_screenshot(xserver, tmp_path / "through_photo2.png"), view,
+                                 cv2.imread(str(site / "images" / sc2["photo"])))
         assert corr2 > 0.7, corr2
         assert app.poll() is None, app.stderr.read()[-1500:]
         print(f"interactive 3D tab on Xvfb: opened in {sc['open_s']:.2f} s, through-photo correlation {corr:.3f}, "
