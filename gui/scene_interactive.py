@@ -39,18 +39,18 @@ def gl_renderer() -> str | None:
 
 def choose() -> tuple[str, str]:
     """("interactive" | "image", why). ``GTKIT_SCENE_VIEW=interactive|image`` overrides."""
+    import importlib.util
+
     want = os.environ.get("GTKIT_SCENE_VIEW", "auto").lower()
     if want in ("interactive", "image"):
         return want, f"GTKIT_SCENE_VIEW={want}"
-    try:
-        import pyvistaqt  # noqa: F401
-    except ImportError:
-        return "image", "pyvistaqt is not installed"
     r = gl_renderer()
     if r is None:
         return "image", "Qt has no OpenGL windows on this platform"
     if any(s in r.lower() for s in SOFTWARE_GL):
         return "image", f"CPU rendering ({r}): the offscreen image is faster"
+    if importlib.util.find_spec("pyvistaqt") is None:  # (importing it costs 1-2 s: pyvista's plotting, matplotlib)
+        return "image", "pyvistaqt is not installed"
     return "interactive", f"OpenGL: {r}"
 
 
