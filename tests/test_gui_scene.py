@@ -216,6 +216,14 @@ def test_scene_draws_tiepoints_gcps_and_targets_where_they_are(finished_demo, tm
     (site / "exports").mkdir(exist_ok=True)
     (site / "exports/tracks.csv").write_text("\n".join(rows) + "\n")
 
+    # a zoom photo looks from its wide twin's pose through the rig (3 degrees apart, 1500 px focal)
+    from scipy.spatial.transform import Rotation
+
+    R_zw = Rotation.from_euler("y", 3, degrees=True).as_matrix()
+    (site / "work/rig").mkdir(parents=True)
+    (site / "work/rig/rig.json").write_text(json.dumps({"R_zoom_from_wide": R_zw.tolist(), "offset_m": [0, 0, 0],
+                                                         "zoom": [{"focal_mm": None, "camera": "PINHOLE 640 480 1500 1500 320 240"}]}))
+    shutil.copy(site / "images/queries/seq1/0001_W.jpg", site / "images/queries/seq1/0001_Z.jpg")
     sc = load_scene(site)  # placement (no rendering)
     for tid, X in (("tA", A), ("tB", B), ("tC", C)):
         assert np.linalg.norm(sc.tiepoints[tid] - X) < 0.05, (tid, sc.tiepoints[tid], X)
@@ -229,8 +237,15 @@ def test_scene_draws_tiepoints_gcps_and_targets_where_they_are(finished_demo, tm
         px = {k: sp.world_to_pixel([X])[0] for k, X in
               (("A", A), ("B", B), ("C", C), ("G1", G1), ("G2", G2), ("res", G1 + [15.0, 0, 0]),
                *((f"T{k}", p) for k, p in enumerate(T)), ("line", (T[0] + T[1]) / 2))}
-        eye = read_poses(site / "work/localize/poses.txt")["queries/seq1/0001_W.jpg"].center
+        wide = read_poses(site / "work/localize/poses.txt")["queries/seq1/0001_W.jpg"]
+        eye = wide.center
         px["sight"] = sp.world_to_pixel([0.5 * (eye + T[1])])[0]
+        assert sp.photo("queries/seq1/0001_Z.jpg")
+        cam = sp.camera()
+        axis = np.subtract(cam["focal_point"], cam["position"])
+        assert np.allclose(cam["position"], eye, atol=1e-6)
+        assert np.allclose(axis / np.linalg.norm(axis), (R_zw @ wide.R)[2], atol=1e-6)
+        assert abs(cam["view_angle"] - np.degrees(2 * np.arctan(240 / 1500))) < 1e-6
     finally:
         sp.close()
     sp = SceneProcess(site, 900, 900, ViewSettings(layers=("model",)))  # the same view, model only

@@ -89,6 +89,7 @@ class SceneData:
     cameras: dict[str, Camera] = field(default_factory=dict)
     bounds: np.ndarray | None = None                    # (2, 3)
     seconds: dict[str, float] = field(default_factory=dict)
+    project: Project | None = None
 
 
 def _use_egl():
@@ -146,7 +147,7 @@ def load_scene(project: Project | str | Path, settings: ViewSettings | None = No
     project = project if isinstance(project, Project) else Project.load(project)
     s = settings or ViewSettings()
     P = project.paths
-    out = SceneData()
+    out = SceneData(project=project)
     t0 = time.perf_counter()
     out.model, out.n_triangles_model, out.n_triangles_shown = view_model(project, s.max_triangles)
     out.seconds["model"] = time.perf_counter() - t0
@@ -538,13 +539,30 @@ def world_to_pixel(plotter, X: np.ndarray) -> np.ndarray:
 
 def pose_of(scene: SceneData, name: str | None):
     """The best pose the project has for a photo (pseudo-GT, localized, reference block, prior) and
-    its camera, or (None, None)."""
+    its camera, or (None, None). A zoom photo (``<idx>_Z``) looks from its wide twin's pose through
+    the rig calibration (``work/rig/rig.json``), else through the wide camera."""
     if not name:
         return None, None
     for kind in ("pseudo_gt", "localized", "prior"):
         if name in scene.query_poses.get(kind, {}):
             return scene.query_poses[kind][name], scene.cameras.get(name)
-    return scene.reference.get(name, (None, None))
+    if name in scene.reference:
+        return scene.reference[name]
+    from ..track.calibrate import wide_name_for
+
+    wide = wide_name_for(name)
+    pose, cam = pose_of(scene, wide) if wide else (None, None)
+    if pose is None or scene.project is None or not scene.project.paths.rig.is_file():
+        return pose, cam
+    from ..io.exif import read_photo_meta
+    from ..track.rig import Rig
+
+    try:
+        rig = Rig.load(scene.project.paths.rig)
+        meta = read_photo_meta(scene.project.paths.images / name)
+        return rig.zoom_pose(pose), rig.zoom_camera(meta.width, meta.height, meta.focal_mm)
+    except GtkitError:
+        return pose, cam
 
 
 def describe(scene: SceneData) -> dict:
