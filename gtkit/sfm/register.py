@@ -42,6 +42,7 @@ from . import quiet_colmap
 from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
 from .crossmatch import AUTO_PREFIX, CrossMatchSettings, cross_matches
+from .resect import resect_sequence
 from .geometry import RegistrationError, model_cameras, model_poses, robust_sim3, triangulate_clicks
 
 log = logging.getLogger(__name__)
@@ -382,7 +383,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     tiepoints = read_tiepoints(P.tiepoints)
     ref_rec = pycolmap.Reconstruction(ref_dir)
     ref_cache = {"poses": model_poses(ref_rec), "cams": model_cameras(ref_rec)}
-    seq_report, blocks, statuses = {}, {}, {}
+    seq_report, blocks, statuses, resected = {}, {}, {}, {}
     for seq, d in seq_dirs.items():
         if not d.is_dir():
             seq_report[seq] = {"status": "error", "error": "no query-block model (run `gtkit sfm DIR --block queries`)"}
@@ -399,6 +400,14 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         seq_report[seq] = {"status": "registered", "scale": float(sim.scale),
                            "n_tiepoints": len(st), "n_sim3_inliers": sum(s.inlier for s in st),
                            "sim3_rmse_m": float(np.sqrt(np.mean([s.sim3_residual_m ** 2 for s in st if s.inlier])))}
+        # photos the sequence's SfM left out: resected from their clicks, then adjusted with the rest
+        res = resect_sequence(seq, qrec, P.stage(QUERIES_STAGE) / seq / "block.json", P.images, tiepoints,
+                              lambda obs: _place(obs, ref_cache["poses"], ref_cache["cams"], ref_rec,
+                                                 settings.tie_max_px)[0], settings.tie_max_px)
+        if res:
+            seq_report[seq]["left_out_by_sfm"] = {n: {k: v for k, v in r.items() if k != "centroid"}
+                                                  for n, r in res.items()}
+            resected.update({n: r for n, r in res.items() if r["resected"]})
     t_sim = time.time()
     result = {"sequences": seq_report, "n_registered": 0, "n_images": _count_query_images(P, seq_dirs), "images": {}}
     out.mkdir(parents=True, exist_ok=True)
@@ -422,6 +431,8 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
                 pts = [rec_q.points3D[p.point3D_id].xyz for p in im.points2D if p.has_point3D()]
                 if pts:
                     cen[im.name] = np.median(np.array(pts), axis=0)
+                elif im.name in resected:
+                    cen[im.name] = np.array(resected[im.name]["centroid"])
     auto = cross_matches(qp, qc, cen, ref_cache["poses"], ref_cache["cams"],
                          [P.stage(QUERIES_STAGE) / sq / "database.db" for sq in blocks],
                          P.stage(REFERENCE_STAGE) / "database.db", settings.cross)
@@ -484,6 +495,8 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         cams[im.name] = Camera.from_pycolmap(rec.cameras[im.camera_id])
         info = {"sequence": im.name.split("/")[1], "n_points": int(im.num_points3D),
                 "n_tiepoints": tie_count.get(im.name, 0), "n_auto_tiepoints": auto_count.get(im.name, 0)}
+        if im.name in resected:  # left out by its sequence's SfM, registered on its own
+            info["resected"] = {k: v for k, v in resected[im.name].items() if k != "centroid"}
         if ok:
             covs[im.name] = pose.covariance
             info["sigma_pos_m"] = float(np.sqrt(np.trace(pose.center_covariance())))
