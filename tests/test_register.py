@@ -12,6 +12,7 @@ from gtkit.camera import Camera
 from gtkit.conventions import dji_to_rotation
 from gtkit.evaluate.poses import medians, pose_errors
 from gtkit.geo import GeoFrame
+from gtkit.io.atomic import write_json
 from gtkit.io.poses import read_covariances, read_poses, write_poses
 from gtkit.io.tiepoints import Observation, TiePoint, write_tiepoints
 from gtkit.pose import Pose
@@ -57,7 +58,8 @@ def _model(cam: Camera, poses: dict[str, Pose], points=None, rng=None, noise_px=
     return rec
 
 
-def make_site(tmp_path, seed=0, mistakes=0.0, n_ties=20, seqs=("seq1",), tie_override=None, one_query_click=False):
+def make_site(tmp_path, seed=0, mistakes=0.0, n_ties=20, seqs=("seq1",), tie_override=None, one_query_click=False,
+              left_out=()):
     """A project with a reference model, query models in arbitrary frames, clicks and truth."""
     rng = np.random.default_rng(seed)
     proj = Project.create(tmp_path, GeoFrame("EPSG:32650", (500000.0, 4000000.0, 0.0)))
@@ -86,7 +88,11 @@ def make_site(tmp_path, seed=0, mistakes=0.0, n_ties=20, seqs=("seq1",), tie_ove
         for n, p in qposes.items():
             Cb = to_block(p.center[None])[0] + rng.normal(0, 0.02 * scale, 3)
             bposes[n] = Pose.from_center(p.R @ Rm.T, Cb)
-        qm = _model(Q_CAM, qposes, pts, rng, noise_px=0.5)
+        qm = _model(Q_CAM, {n: p for n, p in qposes.items() if n not in left_out}, pts, rng, noise_px=0.5)
+        if left_out:  # photos the sequence's SfM could not hold, as its block record lists them
+            write_json(P.stage("sfm_queries") / seq / "block.json",
+                       {"n_images": len(qposes),
+                        "unregistered": {n: "no verified matches with any other image" for n in left_out}})
         # move the model (built in world) into the block frame
         qm.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(Rm), tr))
         (P.query_images / seq).mkdir(parents=True, exist_ok=True)
@@ -157,6 +163,21 @@ def test_one_query_click_per_tiepoint(tmp_path):
     listed = set(res["bad_tiepoints"])
     assert len(bad & listed) >= 0.7 * len(bad), (bad, listed)
     assert res["median_tiepoint_reproj_px"] < 1.5
+
+
+def test_a_photo_its_sequence_left_out_is_resected_from_its_clicks(tmp_path):
+    lonely = "queries/seq1/0003_W.jpg"
+    proj, truth, _ = make_site(tmp_path, seed=2, n_ties=96, one_query_click=True, left_out=(lonely,))
+    res = register.run(proj)
+    assert res["n_registered"] == 8 == res["n_images"]
+    rec = res["images"][lonely]["resected"]
+    assert rec["resected"] and rec["n_inliers"] >= 6 and "no verified matches" in rec["sfm_reason"]
+    assert res["sequences"]["seq1"]["left_out_by_sfm"][lonely]["resected"]
+    est = read_poses(proj.paths.stage("register") / "poses.txt")
+    e = pose_errors(est, truth, [lonely])[lonely]
+    others = medians(pose_errors(est, truth, [n for n in truth if n != lonely]))
+    # held by its own clicks only (no SfM points): within a few times the block's photos
+    assert e["pos_err_m"] < max(0.3, 4 * others["median_pos_err_m"]) and e["rot_err_deg"] < 0.3, (e, others)
 
 
 def test_report_reads_truth_and_review(tmp_path):

@@ -65,9 +65,12 @@ def resect_photo(name: str, camera: Camera, ties: list[tuple[np.ndarray, np.ndar
     pin = camera.pinhole_part()
     if camera.has_distortion:
         uv = pin.world_to_image(camera.image_to_world(uv))
-    meta = read_photo_meta(image_path)
+    try:
+        meta = read_photo_meta(image_path)
+    except Exception:  # noqa: BLE001 - unreadable tags: resected without the gravity check
+        meta = None
     g = gravity_in_camera(dji_to_rotation(meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll)) \
-        if meta.has_gimbal else None
+        if meta is not None and meta.has_gimbal else None
     r = gravity_pnp_ransac(uv, X, pin, g, PnPSettings(max_error_px=max_px, min_inliers=min_inliers,
                                                       covariance_inflation=1.0))
     res.n_inliers = r.n_inliers
@@ -95,11 +98,15 @@ def resect_sequence(seq: str, qrec: pycolmap.Reconstruction, block_json: Path, i
     if not left_out or not qrec.cameras:
         return {}
     registered = {im.name for im in qrec.images.values() if im.has_pose}
+    present = {im.name for im in qrec.images.values()}
     cam_id = sorted(qrec.cameras)[0]  # a sequence's photos share their camera (one DJI lens a block)
     camera = Camera.from_pycolmap(qrec.cameras[cam_id])
     out = {}
     for name, why in sorted(left_out.items()):
         if name in registered:
+            continue
+        if name in present:
+            out[name] = {"sfm_reason": why, "resected": False, "reason": "in the block model without a pose"}
             continue
         ties = []
         for tp in tiepoints:
