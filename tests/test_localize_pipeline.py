@@ -137,6 +137,21 @@ def test_localize_and_evaluate_against_truth(site):
     assert "| matching |" in md and "| pnp |" in md
 
 
+def test_a_pose_less_certain_than_the_limit_is_never_reported(site):
+    status = json.loads((site / "work" / "localize" / "status.json").read_text())
+    ok = {q["name"]: q["sigma_pos_m"] for q in status["queries"] if q["ok"]}
+    name = min(ok, key=ok.get)
+    assert ok[name] < 2.5            # the default limit passes what the default run reported
+    limit = 0.5 * ok[name]           # a limit below this query's own sigma: its pose must not be reported
+    s = localize.LocalizeSettings(query_glob=name, max_sigma_pos_m=limit,
+                                  fallback_rounds=1)
+    out = localize.run(site, s, ablation="sigma-limit", executor=ExecutorSettings("serial"))
+    q = json.loads((out / "status.json").read_text())["queries"][0]
+    assert not q["ok"] and "pose too uncertain" in q["reason"] and "fallback round" in q["reason"]
+    assert len(q["rejected_poses"]) == 2 and all(r["sigma_pos_m"] > limit for r in q["rejected_poses"])
+    assert read_poses(out / "poses.txt") == {}
+
+
 def test_db_views_without_depth_fail_the_query_and_the_run_goes_on(site):
     status = json.loads((site / "work" / "localize" / "status.json").read_text())
     q = next(x for x in status["queries"] if x["name"] == "queries/seq1/0001_W.jpg")
