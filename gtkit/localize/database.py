@@ -298,8 +298,10 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
                    "kept": fractions[v.name] >= settings.min_valid_fraction} for v in views]})
     write_poses(out / "poses.txt", {f"{v.name}.jpg": v.pose() for v in kept}, header="render-db views")
     write_intrinsics(out / "intrinsics.txt", {f"{v.name}.jpg": cam for v in kept})
+    disk = sum(f.stat().st_size for sub in ("images", "depth") for f in (out / sub).rglob("*") if f.is_file())
     mark_stage_done(out, settings, inputs, n_views=len(views), n_kept=len(kept), n_rendered=len(todo),
-                    seconds=round(dt, 2), views_per_s=round(len(todo) / dt, 3) if todo and dt > 0 else None)
+                    seconds=round(dt, 2), views_per_s=round(len(todo) / dt, 3) if todo and dt > 0 else None,
+                    disk_mb=round(disk / 2**20, 1), disk_kb_per_kept_view=round(disk / 2**10 / max(1, len(kept)), 1))
     log.info("render-db: %d of %d views kept (%d rendered in %.1f s)", len(kept), len(views), len(todo), dt)
     return out
 
