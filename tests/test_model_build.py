@@ -293,7 +293,8 @@ def test_colour_balancing_at_seams(built):
           f"{before:.2f} -> balanced {after:.2f}; gain error (log) median {np.median(np.abs(residual)):.4f}, "
           f"max {np.abs(residual).max():.4f} over {len(seen)} photos, {len(sc['a'])} seam edges")
     assert len(sc["a"]) > 1000 and len(seen) > 30
-XX
+    # the exposures' log spread is 0.115; measured median 0.006, max 0.05-0.07 (a photo with few seam edges)
+    assert np.median(np.abs(residual)) < 0.02 and np.abs(residual).max() < 0.15
     assert after < 0.7 * before and after < base + 1.0
     assert base_balanced < base + 0.5                                              # one exposure: no harm
 
