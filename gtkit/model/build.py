@@ -82,14 +82,34 @@ def depth_maps(project: Project, views, neighbours, settings: ModelSettings, fol
     return failed
 
 
+class _MapCache:
+    """Depth maps read on demand, the ``size`` most recently used kept (a photo's fusion neighbours are
+    near it and photos go strip by strip, so few are read twice; memory stays bounded on large sites)."""
+
+    def __init__(self, folder: Path, size: int = 48):
+        from collections import OrderedDict
+
+        self.folder, self.size, self._maps = folder, size, OrderedDict()
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name in self._maps:
+            self._maps.move_to_end(name)
+        else:
+            self._maps[name] = D.read_depth(D.depth_file(self.folder, name))
+            if len(self._maps) > self.size:
+                self._maps.popitem(last=False)
+        return self._maps[name]
+
+
 def fuse(project: Project, views, neighbours, settings: ModelSettings, folder: Path, show: bool = True):
-    maps = {n: D.read_depth(D.depth_file(folder, n)) for n in neighbours if D.depth_file(folder, n).is_file()}
-    near = fusion_neighbours(views, list(maps))
+    names = [n for n in neighbours if D.depth_file(folder, n).is_file()]
+    maps = _MapCache(folder)
+    near = fusion_neighbours(views, names)
     box = region(views, settings.region_margin)
     acc = fusion.VoxelAccumulator(settings.voxel_m)
-    with _bar(len(maps), "fusion", show) as bar:
-        for n, dm in maps.items():
-            v = views[n]
+    with _bar(len(names), "fusion", show) as bar:
+        for n in names:
+            v, dm = views[n], maps[n]
             xw, rc = fusion.lift(v, dm, settings.fusion_stride)
             others = [(views[m], maps[m]) for m in near[n]]
             keep = np.all((xw[:, :2] >= box[0]) & (xw[:, :2] <= box[1]), axis=1)
