@@ -202,8 +202,11 @@ def test_localize_small_sample_queries_with_xfeat(small_sample, tmp_path):
     est = read_poses(out / "poses.txt")
     assert len(est) == 3
     err = np.array([est[n].error_to(truth[n]) for n in sorted(est)])
-    # measured with this one-level database: (0.43 m, 0.09 deg), (1.11 m, 0.62 deg), (0.29 m, 0.12 deg);
-    # the paper's two-level database gives
-    # 0.14 / 0.12 / 0.31 m and 0.04 / 0.03 / 0.11 deg (README)
-    assert err[:, 0].max() < 2.0 and err[:, 1].max() < 1.0, err
-    assert np.median(err[:, 0]) < 1.0 and np.median(err[:, 1]) < 0.5, err
+    # measured with this one-level database: (0.43 m, 0.09 deg), (1.11 m, 0.62 deg), (0.29 m, 0.12 deg)
+    # with the look-at ranking and anisotropic views; with the predicted-overlap ranking and trilinear
+    # views (the defaults since this session) (0.05 m, 0.03 deg), (2.14 m, 1.18 deg), (0.08 m, 0.03 deg):
+    # two better, the middle photo worse (trilinear + look-at: 0.05 / 1.00 / 0.02 m; anisotropic +
+    # overlap: 0.43 / 0.95 / 0.31 m). XFeat is not scale invariant and this database has one level.
+    # The paper's two-level database gives 0.14 / 0.12 / 0.31 m and 0.04 / 0.03 / 0.11 deg (README)
+    assert err[:, 0].max() < 2.5 and err[:, 1].max() < 1.5, err
+    assert np.median(err[:, 0]) < 0.5 and np.median(err[:, 1]) < 0.3, err
