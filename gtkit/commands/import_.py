@@ -46,6 +46,10 @@ def run_model(args):
     print(f"imported {info['format']} model: {what}; world bounds x {lo[0]:.1f}..{hi[0]:.1f} "
           f"y {lo[1]:.1f}..{hi[1]:.1f} z {lo[2]:.1f}..{hi[2]:.1f}"
           + (f"; written to {info['copied_to']}" if info.get("copied_to") else ""))
+    from ..project import Project
+    from ..view.model import prepare_cache
+
+    print(prepare_cache(Project.load(args.dir)))
     return 0
 
 

@@ -50,6 +50,10 @@ def run_build(args):
           + "; peak memory GB " + ", ".join(f"{k} {v}" for k, v in r["peak_memory_gb"].items()))
     for n, why in r["skipped"].items():
         print(f"  skipped {n}: {why}")
+    from ..project import Project
+    from ..view.model import prepare_cache
+
+    print(prepare_cache(Project.load(args.project)))  # the project's model, built or delivered
 
 
 def run_compare(args):

@@ -28,4 +28,8 @@ def run(args):
           f"+ {summary['n_query']} query photos, {summary['n_gcp_clicks']} GCP clicks, "
           f"{summary['n_tiepoints']} tie points in {t['total']:.1f} s")
     print("  " + ", ".join(f"{k} {v:.1f} s" for k, v in t.items() if k != "total"))
+    from ..project import Project
+    from ..view.model import prepare_cache
+
+    print("  " + prepare_cache(Project.load(summary["root"])))
     return 0
