@@ -147,6 +147,10 @@ class Camera:
             x = x - (self._distort(x) - xd)
         return x
 
+    def undistort_pixels(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels of this camera -> the same rays' pixels in :meth:`pinhole_part` (distortion removed)."""
+        return self.pinhole_part().world_to_image(self.image_to_world(uv))
+
     def project(self, points_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Camera-frame points (N, 3) -> (pixels (N, 2), in_front mask)."""
         p = np.asarray(points_cam, dtype=np.float64)

@@ -310,7 +310,7 @@ def _context(ctx: dict):
         _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=g["G"][rows],
                   ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
                   centers=np.array([v.pose.center for v in db.views]).reshape(-1, 3),
-                  look_at=_view_look_at(db),
+                  look_at=_view_look_at(db), ground=_ground_level(db),
                   view_R=np.array([np.asarray(v.pose.R) for v in db.views]).reshape(-1, 3, 3),
                   view_t=np.array([np.asarray(v.pose.t) for v in db.views]).reshape(-1, 3),
                   h5=h5py.File(ctx["features"], "r"), extractor=_extractor(s.features, db=False),
@@ -325,9 +325,8 @@ def _view_look_at(db: Database) -> np.ndarray:
     if not db.views:
         return np.zeros((0, 2))
     centers = np.array([v.pose.center for v in db.views])
-    ground = float(np.median(centers[:, 2] - np.array([v.height for v in db.views])))
     axes = np.array([np.asarray(v.pose.R)[2] for v in db.views])  # camera +z in the world
-    return look_at_points(centers, axes, ground)
+    return look_at_points(centers, axes, _ground_level(db))
 
 
 def _ground_level(db: Database) -> float:
@@ -430,7 +429,7 @@ def _localize_query(W: dict, name: str) -> dict:
     if s.position_prior is not None and meta.has_gps and meta.altitude is not None and prior_R is not None:
         c = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude))[:3]
         if s.position_prior == "footprint":
-            la = look_at_points(c[None], np.asarray(prior_R)[2][None], _ground_level(db))[0]
+            la = look_at_points(c[None], np.asarray(prior_R)[2][None], W["ground"])[0]
             near = footprint_filter(la, W["look_at"], s.gps_footprint_radius_m)
             rec["position_prior"] = {"mode": "footprint", "look_at_xy": [round(float(x), 2) for x in la],
                                      "n_near": int((near & keep).sum()), "radius_m": s.gps_footprint_radius_m}
@@ -438,7 +437,7 @@ def _localize_query(W: dict, name: str) -> dict:
             idx = np.flatnonzero(keep)
             pred = np.zeros(len(db.views))
             pred[idx] = predicted_overlap(c, prior_R, cam.pinhole_part(), W["view_R"][idx], W["view_t"][idx],
-                                          db.camera, _ground_level(db))
+                                          db.camera, W["ground"])
             near = pred > 0
             key = pred + s.prior_vlad_weight * score
             rec["position_prior"] = {"mode": "overlap", "n_overlapping": int((near & keep).sum()),
@@ -511,7 +510,7 @@ def _match_and_solve(W: dict, rec: dict, fq, cam: Camera, prior_R, order, sec: d
     uv = np.concatenate(uv_q)
     X = np.concatenate(X_all)
     if cam.has_distortion:  # PnP on the undistorted pinhole part
-        uv = pin.world_to_image(cam.image_to_world(uv))
+        uv = cam.undistort_pixels(uv)
     g = gravity_in_camera(prior_R) if prior_R is not None else None
     r = gravity_pnp_ransac(uv, X, pin, g, s.pnp)
     sec["pnp"] += time.perf_counter() - t

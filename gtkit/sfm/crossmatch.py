@@ -41,11 +41,6 @@ def _features(db_path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def _undistorted(cam: Camera, uv: np.ndarray) -> np.ndarray:
-    xn = cam.image_to_world(uv)
-    return np.c_[cam.fx * xn[:, 0] + cam.cx, cam.fy * xn[:, 1] + cam.cy]
-
-
 def cross_matches(query_poses: dict[str, Pose], query_cams: dict[str, Camera], query_centroid: dict[str, np.ndarray],
                   ref_poses: dict[str, Pose], ref_cams: dict[str, Camera], query_dbs: list[Path], ref_db: Path,
                   s: CrossMatchSettings, seed: int = 0) -> dict[str, dict[str, tuple[float, float]]]:
@@ -85,8 +80,8 @@ def cross_matches(query_poses: dict[str, Pose], query_cams: dict[str, Camera], q
                 continue
             iq = np.array([g.queryIdx for g in good])
             ir = np.array([g.trainIdx for g in good])
-            pq = _undistorted(query_cams[qn], kq[iq])
-            pr = _undistorted(ref_cams[rn], kr[ir])
+            pq = query_cams[qn].undistort_pixels(kq[iq])
+            pr = ref_cams[rn].undistort_pixels(kr[ir])
             F, mask = cv2.findFundamentalMat(pq, pr, cv2.FM_RANSAC, s.ransac_px, 0.999, 2000)
             if F is None or mask is None or mask.sum() < s.min_inliers:
                 continue

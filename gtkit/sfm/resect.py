@@ -64,7 +64,7 @@ def resect_photo(name: str, camera: Camera, ties: list[tuple[np.ndarray, np.ndar
     X = np.array([t[1] for t in ties], float)
     pin = camera.pinhole_part()
     if camera.has_distortion:
-        uv = pin.world_to_image(camera.image_to_world(uv))
+        uv = camera.undistort_pixels(uv)
     try:
         meta = read_photo_meta(image_path)
     except Exception:  # noqa: BLE001 - unreadable tags: resected without the gravity check
