@@ -7,7 +7,11 @@ the true query poses with each model.
 
 Reads truth/ (evaluation). DSMs of both models on the same grid resolution (``--resolution``);
 cells within 1 m of a true height jump > 2 m are reported apart (gtkit.evaluate.model). Prints one
-table; times are wall seconds on this machine (a shared, noisy 2-core box unless said otherwise).
+table; times are wall seconds on this machine (a shared, noisy 2-core box unless said otherwise),
+with the build's CPU seconds per step beside them (the load inflates wall time, not CPU time).
+
+A medium site whose build already ran (or runs elsewhere, e.g. under ``nohup``) is measured without
+building again: the stage is up to date, so the call only reads its record and makes the DSMs.
 """
 from __future__ import annotations
 
@@ -81,8 +85,10 @@ def main(argv=None):
     print(f"\nmodel build of {root}: {summary['depth_maps']} depth maps of {summary['photos']} photos, "
           f"{summary['points']} fused points, {summary['triangles']} triangles in {summary['parts']} parts "
           f"({wall:.0f} s wall in this call; {os.cpu_count()} CPUs)")
-    print("seconds per step: " + json.dumps(summary["seconds"]) + "; peak memory GB after each step: "
-          + json.dumps(summary["peak_memory_gb"]))
+    print("seconds per step (wall): " + json.dumps(summary["seconds"])
+          + ("; CPU seconds: " + json.dumps(summary["cpu_seconds"]) if "cpu_seconds" in summary else "")
+          + "; peak memory GB in each step: " + json.dumps(summary["peak_memory_gb"]))
+    print(f"load average at the end: {os.getloadavg()[0]:.1f} / {os.getloadavg()[1]:.1f} / {os.getloadavg()[2]:.1f} (1/5/15 min)")
     for n, why in summary["skipped"].items():
         print(f"  skipped {n}: {why}")
     print("\n| model | cell m | completeness (grid) | (of delivered area) | median off edges | p95 off edges | "

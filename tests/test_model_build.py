@@ -239,14 +239,41 @@ def test_tiled_surface_and_tiled_model(built, tmp_path):
     with rasterio.open(single) as a, rasterio.open(tiled) as b:
         ha, hb = a.read(1), b.read(1)
         assert a.transform == b.transform and a.nodata == b.nodata
+    from scipy.ndimage import maximum_filter, minimum_filter
+
     both = (ha != a.nodata) & (hb != b.nodata)
-    d = np.abs(ha[both] - hb[both])                # float32 rendering from another origin: measured max 2 mm
-    assert np.array_equal(ha == a.nodata, hb == b.nodata) and np.median(d) < 1e-4 and d.max() < 0.01
+    d = np.abs(ha - hb)
+    # float32 rendering from another origin: heights within 1 cm (measured max 2 mm), except where a cell's
+    # centre grazes a roof edge (its 3 x 3 neighbourhood spans > 2 m), which one rendering may read on the
+    # roof and the other beside it (measured: 1 cell of 136k, 27.3 vs 22.0 m with neighbours 28.3 / 22.0 m)
+    h = np.where(both, ha, np.nan)
+    edge = (maximum_filter(np.nan_to_num(h, nan=-1e9), 3) - minimum_filter(np.nan_to_num(h, nan=1e9), 3)) > 2.0
+    off = both & (d >= 0.01)
+    assert np.array_equal(ha == a.nodata, hb == b.nodata) and np.median(d[both]) < 1e-4
+    assert np.all(edge[off]) and off.sum() <= 1e-4 * both.sum(), (off.sum(), both.sum())
     m = dsm_vs_truth(root, single)
     print("tiny built model, surface in", summary["surface_tiles"], "tiles, vs true world:", json.dumps(m))
     assert m["completeness"] > 0.85
     assert m["off_edges"]["median"] < 0.10 and m["off_edges"]["p95"] < 0.8
     assert abs(m["bias"]) < 0.05
+
+    # a build killed while it makes the surface resumes at the next tile: the fused cloud and the
+    # finished tiles (one file each) are read back, only the missing tile is made again
+    work = root / "work" / "model"
+    fused = next((work / "fused").iterdir())
+    tiles_done = sorted(next((work / "surface").iterdir()).glob("tile_*.npz"))
+    assert len(tiles_done) == summary["surface_tiles"] and len(json.loads((fused / "index.json").read_text())["cells"]) >= 2
+    gone = tiles_done[1]
+    gone.unlink()
+    (work / "stage.json").unlink()                 # the build did not finish
+    kept = {p: p.stat().st_mtime_ns for p in tiles_done if p != gone}
+    kept[fused / "index.json"] = (fused / "index.json").stat().st_mtime_ns
+    again = build(root, replace(FAST, tile_m=120.0, max_triangles=50_000), show=False)
+    assert gone.is_file() and all(p.stat().st_mtime_ns == t for p, t in kept.items())
+    assert abs(again["triangles"] - summary["triangles"]) <= 0.01 * summary["triangles"]
+    m2 = dsm_vs_truth(root, dsm.run(proj, s, input=root / "model" / "reference.obj", out=tmp_path / "again.tif"))
+    assert abs(m2["completeness"] - m["completeness"]) < 0.005
+    assert abs(m2["off_edges"]["median"] - m["off_edges"]["median"]) < 0.005
 
 
 def _welded_model(root):
@@ -293,8 +320,17 @@ def test_colour_balancing_at_seams(built):
           f"{before:.2f} -> balanced {after:.2f}; gain error (log) median {np.median(np.abs(residual)):.4f}, "
           f"max {np.abs(residual).max():.4f} over {len(seen)} photos, {len(sc['a'])} seam edges")
     assert len(sc["a"]) > 1000 and len(seen) > 30
-    # the exposures' log spread is 0.115; measured median 0.006, max 0.05-0.07 (a photo with few seam edges)
-    assert np.median(np.abs(residual)) < 0.02 and np.abs(residual).max() < 0.15
+    # a photo's gain is solved where it meets another photo at >= 20 seam edges (colour_gains' min_edges);
+    # elsewhere it stays 1 by design (a fixture whose SfM left one photo with 17 seam edge ends: 0.22 there)
+    n = len(names)
+    lo, hi = np.minimum(sc["a"], sc["b"]), np.maximum(sc["a"], sc["b"])
+    up, cnt = np.unique(lo.astype(np.int64) * n + hi, return_counts=True)
+    solved = np.zeros(n, bool)
+    solved[up[cnt >= 20] // n] = solved[up[cnt >= 20] % n] = True
+    solved = solved[seen]
+    assert solved.mean() > 0.9
+    # the exposures' log spread is 0.115; measured median 0.006-0.010, max over solved photos 0.05-0.09
+    assert np.median(np.abs(residual)) < 0.02 and np.abs(residual[solved]).max() < 0.15
     assert after < 0.7 * before and after < base + 1.0
     assert base_balanced < base + 0.5                                              # one exposure: no harm
 
@@ -349,3 +385,63 @@ def test_build_killed_during_depth_maps_resumes(built, tmp_path):
     assert m["completeness"] > 0.85
     assert m["off_edges"]["median"] < 0.10 and m["off_edges"]["p95"] < 0.8
     assert abs(m["bias"]) < 0.05
+
+
+def test_fusion_in_cells_equals_one_accumulator(tmp_path):
+    """Fusion kept on disk cell by cell (memory: one cell) gives the voxels one accumulator over the
+    whole site gives: the same voxels, means within float32 rounding, the same colours; a box read
+    back holds exactly the voxels inside it; the LAZ written cell by cell holds them all."""
+    import laspy
+
+    from gtkit.model.fusion import CellSpill, VoxelAccumulator, write_laz_cells
+
+    rng = np.random.default_rng(3)
+    acc = VoxelAccumulator(0.25, flush_at=50_000)
+    spill = CellSpill(tmp_path / "spill", 0.25, 30.0)
+    for _ in range(6):                             # six "photos" over a 100 m x 80 m site, some voxels shared
+        xyz = rng.uniform([-40, -30, 0], [60, 50, 3], (40_000, 3))
+        xyz[:20_000] = np.round(xyz[:20_000] / 0.25) * 0.25 + 0.1     # points falling into the same voxels
+        rgb = rng.integers(0, 256, (len(xyz), 3)).astype(np.float64)
+        d = rng.normal(size=(len(xyz), 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        acc.add(xyz, rgb, d)
+        spill.add(xyz, rgb, d)
+    ref_xyz, ref_rgb, ref_dir, ref_n = acc.result()
+    cells = spill.reduce(tmp_path / "fused")
+    # cells of 30 m (120 voxels) from the origin: x -40..60.1 falls in 5 of them, y -30..50.1 in 3
+    assert len(cells.cells) == 15 and not (tmp_path / "spill").exists()
+    assert all(np.floor(np.asarray(c["lo"]) / 30).tolist() == np.floor(np.asarray(c["hi"]) / 30).tolist() for c in cells.cells)
+    r = cells.read()
+    assert len(r) == len(cells) == len(ref_xyz)
+    assert np.abs(r["xyz"] - ref_xyz).max() < 1e-4 and np.array_equal(r["n"], ref_n)
+    assert np.abs(r["rgb"].astype(int) - ref_rgb).max() <= 1 and np.abs(r["dir"] - ref_dir).max() < 1e-5
+    box = np.array([[-5.0, 0.0], [25.0, 20.0]])
+    inside = np.all((ref_xyz[:, :2] >= box[0] - 2) & (ref_xyz[:, :2] <= box[1] + 2), axis=1)
+    assert len(cells.read(box, 2.0)) == inside.sum()
+    origin = np.array([500000.0, 3300000.0, 10.0])
+    write_laz_cells(tmp_path / "p.laz", cells, origin, "EPSG:32650", chunk=7_000)
+    las = laspy.read(tmp_path / "p.laz")
+    assert len(las.x) == len(ref_xyz)
+    back = np.sort(np.asarray(las.x) - origin[0])
+    assert np.abs(back - np.sort(ref_xyz[:, 0])).max() < 0.001
+
+
+def test_seam_colours_read_many_points_in_one_photo():
+    """Colours are read at any number of points in one photo (a photo textured over a large site meets
+    more than OpenCV's 32767 map entries a side): a linear ramp read back bilinearly is exact."""
+    from gtkit.camera import Camera
+    from gtkit.model.texture import _sample
+    from gtkit.model.views import View
+    from gtkit.pose import Pose
+
+    cam = Camera.pinhole(640, 480, 430.0)
+    K = np.array([[430.0, 0, 319.5], [0, 430.0, 239.5], [0, 0, 1]])
+    v = View("p", cam, Pose.from_center(np.diag([1.0, -1.0, -1.0]), [0, 0, 100.0]), 1.0, 640, 480, K, 80, 120, 100)
+    jj, ii = np.meshgrid(np.arange(640), np.arange(480))
+    ramp = np.stack([jj * 0.25, ii * 0.5, np.full_like(jj, 7)], -1).astype(np.uint8)   # exact in uint8
+    px = np.random.default_rng(1).uniform([0, 0], [639, 479], (50_000, 2))
+    X = np.stack([(px[:, 0] - 319.5) / 430 * 100, -(px[:, 1] - 239.5) / 430 * 100, np.zeros(len(px))], 1)
+    c = _sample({"p": v}, ["p"], lambda _: ramp, np.zeros(len(X), np.int64), X)
+    want = np.stack([np.floor(px[:, 0]) * 0.25, np.floor(px[:, 1]) * 0.5], 1)
+    assert np.isfinite(c).all() and np.abs(c[:, 2] - 7).max() < 1e-3
+    assert np.abs(c[:, :2] - want).max() < 1.01          # uint8 ramps step by 1 every 4 / 2 px

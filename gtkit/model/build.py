@@ -3,8 +3,12 @@
     run(project, ModelSettings())   # work/sfm_reference -> work/model/... -> model/reference.obj
 
 Steps and their outputs (``work/model/``): ``depth/<key>/<photo>.npz`` (one a photo, kept when a
-run is killed), ``points.ply`` + ``points.laz`` (fused cloud; LAZ in the project CRS), ``surface.ply``
-(trimmed, simplified), then the textured OBJ + offset sidecar. Where the project has no model the
+run is killed), ``fused/<key>/<cell>.npy`` (the fused cloud, one file per 100 m cell, ``index.json``
+last) + ``points.laz`` (in the project CRS), ``surface/<key>/tile_<k>.npz`` (each surface tile,
+trimmed and simplified, saved when done), then the textured OBJ + offset sidecar. A killed build
+resumes: finished depth maps, a finished fusion and finished surface tiles with the same settings
+are read back (``force`` keeps only the depth maps). Memory is bounded by a photo (depth, fusion), a
+cell (fusion's averaging) and a surface tile, not by the site. Where the project has no model the
 OBJ is ``model/reference.obj``; where a delivered model is there already, it is
 ``model/built/reference.obj`` and the delivered one stays the project's model unless ``use=True``
 (the delivered files then move to ``model/delivered/``). ``project.toml [model]`` records which.
@@ -35,12 +39,40 @@ DEPTH_VERSION = 2   # bump when the depth maps' method changes (finished maps of
 
 
 def _peak_gb() -> float:
+    """Peak resident memory of this process (GB) since the start or the last :func:`_reset_peak`."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024 / 1e9
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+
+
+def _reset_peak() -> None:
+    """Start a new peak-memory window (Linux: writing 5 to clear_refs resets VmHWM; elsewhere the
+    peaks are cumulative)."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def _mark(step: str, t: dict, mem: dict, cpu: dict) -> None:
+    """End of a step: its time, CPU seconds and peak memory (the step's own where the OS can reset
+    the peak, else the process's so far)."""
+    t[step], mem[step], cpu[step] = time.time(), _peak_gb(), _cpu_s()
+    _reset_peak()
 
 
 def _step_done(step: str, t: dict, mem: dict, what: str) -> None:
     prev = max(v for k, v in t.items() if k != step and v <= t[step])
-    log.info("model build: %s done in %.0f s (%s); peak memory so far %.2f GB", step, t[step] - prev, what, mem[step])
+    log.info("model build: %s done in %.0f s (%s); peak memory in the step %.2f GB", step, t[step] - prev, what, mem[step])
 
 
 def _bar(total: int, desc: str, show: bool):
@@ -101,12 +133,36 @@ class _MapCache:
         return self._maps[name]
 
 
-def fuse(project: Project, views, neighbours, settings: ModelSettings, folder: Path, show: bool = True):
+FUSION_VERSION = 2   # bump when fusion's method changes (a finished fused cloud of another version is not reused)
+SURFACE_VERSION = 1  # the same for the surface tiles
+
+
+def fusion_key(settings: ModelSettings, depth_folder: Path, names: list[str]) -> str:
+    keys = ("region_margin", "fusion_stride", "voxel_m", "pair_agree", "min_view_agree", "fusion_cell_m")
+    d = settings_dict(settings)
+    return settings_key({"depth": depth_folder.name, "maps": len(names), "version": FUSION_VERSION,
+                         "fusion": {k: d[k] for k in keys}})
+
+
+def fuse(project: Project, views, neighbours, settings: ModelSettings, folder: Path, show: bool = True,
+         out: Path | None = None, force: bool = False) -> fusion.FusedCells:
+    """Fuse the depth maps into a cloud kept on disk cell by cell (``work/model/fused/<key>/``; see
+    :mod:`gtkit.model.fusion`): memory is one photo while lifting and one cell while averaging. A
+    finished fusion with the same depth maps and settings is reused unless ``force``."""
     names = [n for n in neighbours if D.depth_file(folder, n).is_file()]
+    root = out or folder.parent.parent / "fused"
+    dest = root / fusion_key(settings, folder, names)
+    if not force and fusion.FusedCells.done(dest):
+        log.info("fusion: reusing %s", dest)
+        return fusion.FusedCells(dest)
+    if root.is_dir():                                  # other settings' fused clouds
+        for d in root.iterdir():
+            if d != dest:
+                shutil.rmtree(d, ignore_errors=True) if d.is_dir() else d.unlink()
     maps = _MapCache(folder)
     near = fusion_neighbours(views, names)
     box = region(views, settings.region_margin)
-    acc = fusion.VoxelAccumulator(settings.voxel_m)
+    spill = fusion.CellSpill(root / "spill", settings.voxel_m, settings.fusion_cell_m)
     with _bar(len(names), "fusion", show) as bar:
         for n in names:
             v, dm = views[n], maps[n]
@@ -115,12 +171,13 @@ def fuse(project: Project, views, neighbours, settings: ModelSettings, folder: P
             keep = np.all((xw[:, :2] >= box[0]) & (xw[:, :2] <= box[1]), axis=1)
             keep[keep] = fusion.consistent_count(xw[keep], others, settings.pair_agree) >= settings.min_view_agree
             xw, rc = xw[keep], rc[keep]
-            rgb = load_image(project, v, gray=False)[rc[:, 0], rc[:, 1]].astype(np.float64)
+            rgb = load_image(project, v, gray=False)[rc[:, 0], rc[:, 1]]
             to_cam = v.center - xw
             to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
-            acc.add(xw, rgb, to_cam)
+            spill.add(xw, rgb, to_cam)
             bar.update(1)
-    return acc.result()
+    log.info("fusion: %d lifted points in %d cells; averaging per voxel", spill.n, len(list(spill.folder.glob("c*.bin"))))
+    return spill.reduce(dest, {"photos": len(names), "lifted": spill.n})
 
 
 def _write_model(project: Project, mesh: Mesh, use: bool | None) -> Path:
@@ -168,7 +225,8 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     if len(views) < 3:
         raise GtkitError(f"only {len(views)} usable registered photos in the reference block", block)
     t = {"start": time.time()}
-    mem = {}
+    mem, cpu = {}, {"start": _cpu_s()}
+    _reset_peak()
     neighbours, sk = choose_neighbours(views, settings)
     skipped.update(sk)
     for n, why in sk.items():
@@ -182,23 +240,34 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     folder.mkdir(parents=True, exist_ok=True)
     failed = depth_maps(project, views, neighbours, settings, folder, show)
     skipped.update(failed)
-    t["depth"], mem["depth"] = time.time(), _peak_gb()
+    _mark("depth", t, mem, cpu)
     _step_done("depth", t, mem, f"{len(neighbours) - len(failed)} depth maps")
 
-    xyz, rgb, toward, count = fuse(project, views, neighbours, settings, folder, show)
-    if len(xyz) < 100:
-        raise GtkitError(f"fusion kept only {len(xyz)} points: the depth maps do not agree", folder)
-    origin = np.asarray(project.frame.origin)
-    fusion.write_laz(work / "points.laz", xyz + origin, rgb, project.frame.crs_spec)
-    t["fusion"], mem["fusion"] = time.time(), _peak_gb()
-    _step_done("fusion", t, mem, f"{len(xyz)} points")
+    cloud = fuse(project, views, neighbours, settings, folder, show, force=force)
+    n_points = len(cloud)
+    if n_points < 100:
+        raise GtkitError(f"fusion kept only {n_points} points: the depth maps do not agree", folder)
+    laz = work / "points.laz"
+    stamp = cloud.folder / "laz.done"
+    if force or not (laz.is_file() and stamp.is_file()):
+        fusion.write_laz_cells(laz, cloud, np.asarray(project.frame.origin), project.frame.crs_spec)
+        stamp.write_text(str(laz.stat().st_size))
+    _mark("fusion", t, mem, cpu)
+    _step_done("fusion", t, mem, f"{n_points} points in {len(cloud.cells)} cells")
 
-    V, F, n_poisson, n_tiles = surface.tiled_surface(xyz, toward, settings, log=log)
-    n_points = len(xyz)
-    del xyz, rgb, toward, count
+    skey = settings_key({"fusion": cloud.folder.name, "version": SURFACE_VERSION,
+                         "surface": {k: v for k, v in settings_dict(settings).items()
+                                     if k in ("poisson_depth", "trim_m", "max_triangles", "tile_m", "tile_overlap_m", "voxel_m")}})
+    sdir = work / "surface" / skey
+    if sdir.parent.is_dir():
+        for d in sdir.parent.iterdir():
+            if d != sdir or force:
+                shutil.rmtree(d, ignore_errors=True) if d.is_dir() else d.unlink()
+    V, F, n_poisson, n_tiles = surface.tiled_surface(cloud, settings, log=log, save=sdir)
+    del cloud
     if not len(F):
         raise GtkitError("the Poisson surface is empty after trimming", folder)
-    t["surface"], mem["surface"] = time.time(), _peak_gb()
+    _mark("surface", t, mem, cpu)
     _step_done("surface", t, mem, f"{len(F)} triangles in {n_tiles} tile(s)")
 
     with _bar(len(views), "texture (visibility)", show) as bar:
@@ -226,17 +295,21 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
         project.config["model"]["tiled"] = str(tiles.relative_to(P.root))
         project.save()
     del mesh, parts
-    t["texture"], mem["texture"] = time.time(), _peak_gb()
+    _mark("texture", t, mem, cpu)
     _step_done("texture", t, mem, f"{out.relative_to(P.root)}" + (f" and {n_tiles} tiles" if n_tiles > 1 else ""))
 
     steps = ["depth", "fusion", "surface", "texture"]
-    prev, seconds = t["start"], {}
+    prev, seconds, cpu_s = t["start"], {}, {}
     for s in steps:
         seconds[s], prev = round(t[s] - prev, 1), t[s]
+    prev = cpu["start"]
+    for s in steps:
+        cpu_s[s], prev = round(cpu[s] - prev, 1), cpu[s]
     summary = {"model": str(out.relative_to(P.root)), "photos": n_photos,
                "depth_maps": len(neighbours) - len(failed), "skipped": skipped, "points": int(n_points),
                "poisson_triangles": int(n_poisson), "triangles": int(len(F)), "parts": n_parts,
                "surface_tiles": n_tiles, "unseen_faces": int((best < 0).sum()), "seam_colour_diff": seam_diff, "seconds": seconds,
-               "peak_memory_gb": {k: round(v, 2) for k, v in mem.items()}}
+               "cpu_seconds": cpu_s, "peak_memory_gb": {k: round(v, 2) for k, v in mem.items()},
+               "peak_memory_gb_max": round(max(mem.values()), 2)}
     mark_stage_done(work, settings, inputs, **summary)
     return summary

@@ -21,6 +21,7 @@ class ModelSettings:
     region_margin: float = 0.5        # model the camera centres' box grown by this x the median scene depth
     fusion_stride: int = 2            # back-project every n-th pixel of each depth map
     voxel_m: float = 0.25             # fused points are averaged per voxel of this size
+    fusion_cell_m: float = 100.0      # fusion keeps its points on disk in cells of this size (memory: one cell)
     poisson_depth: int = 0            # octree depth of the Poisson surface (0: cells of about 2 voxels)
     trim_m: float = 3.0               # surface farther than this from every fused point is cut away
     max_triangles: int = 600_000      # simplification budget (pymeshlab quadric edge collapse), per surface tile

@@ -8,6 +8,8 @@ from the nearest fused point goes.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from .settings import ModelSettings
@@ -57,8 +59,8 @@ def _compact(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def tile_boxes(xyz: np.ndarray, tile_m: float) -> list[np.ndarray]:
-    """(2, 2) min/max x, y of equal tiles covering the points, none wider than ``tile_m`` (one tile
-    when the points fit in one)."""
+    """(2, 2) min/max x, y of equal tiles covering the points (or their (2, 2+) min/max box), none
+    wider than ``tile_m`` (one tile when the points fit in one)."""
     lo, hi = xyz[:, :2].min(0), xyz[:, :2].max(0)
     n = np.maximum(1, np.ceil((hi - lo) / tile_m - 1e-9)).astype(int)
     step = (hi - lo) / n
@@ -71,31 +73,80 @@ def tile_boxes(xyz: np.ndarray, tile_m: float) -> list[np.ndarray]:
     return boxes
 
 
-def tiled_surface(xyz: np.ndarray, toward: np.ndarray, settings: ModelSettings, keep_m: float = 1.0,
-                  log=None) -> tuple[np.ndarray, np.ndarray, int, int]:
+class ArrayCloud:
+    """A fused cloud held in memory (xyz, unit directions toward the cameras), read like
+    :class:`gtkit.model.fusion.FusedCells`."""
+
+    def __init__(self, xyz: np.ndarray, toward: np.ndarray):
+        self.xyz, self.toward = xyz, toward
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    def bounds(self) -> np.ndarray:
+        return np.stack([self.xyz.min(0), self.xyz.max(0)])
+
+    def points(self, box=None, margin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        if box is None:
+            return self.xyz, self.toward
+        sel = np.all((self.xyz[:, :2] >= box[0] - margin) & (self.xyz[:, :2] <= box[1] + margin), axis=1)
+        return self.xyz[sel], self.toward[sel]
+
+
+def _points(cloud, box, margin):
+    if hasattr(cloud, "points"):
+        return cloud.points(box, margin)
+    r = cloud.read(box, margin)                      # FusedCells: records from disk
+    return r["xyz"].astype(np.float64), r["dir"].astype(np.float64)
+
+
+def tiled_surface(cloud, settings: ModelSettings, keep_m: float = 1.0, log=None,
+                  save: Path | None = None) -> tuple[np.ndarray, np.ndarray, int, int]:
     """(vertices, faces, Poisson triangles before simplification, tiles) of the site's surface,
-    reconstructed tile by tile (see the module docstring)."""
-    boxes = tile_boxes(xyz, settings.tile_m)
+    reconstructed tile by tile (see the module docstring) from ``cloud`` (:class:`ArrayCloud` or
+    the fused cells on disk: only a tile's points are read at a time). With ``save`` each finished
+    tile is written there (``tile_<k>.npz``, atomically) and a tile already there is read back, so
+    a killed build resumes at the next tile."""
+    from ..io.atomic import atomic_path
+
+    lo_hi = cloud.bounds()
+    boxes = tile_boxes(lo_hi[:, :2], settings.tile_m)
+    if save is not None:
+        save.mkdir(parents=True, exist_ok=True)
+        for f in save.glob(".*.tmp*"):
+            f.unlink(missing_ok=True)
     Vs, Fs, n_poisson, nv = [], [], 0, 0
     for k, box in enumerate(boxes):
-        if len(boxes) == 1:
-            sel = np.arange(len(xyz))
+        done = save / f"tile_{k}.npz" if save is not None else None
+        if done is not None and done.is_file():
+            with np.load(done) as z:
+                V, F, npo, npts = z["V"], z["F"].astype(np.int64), int(z["poisson"]), int(z["points"])
+            if log is not None and len(boxes) > 1:
+                log.info("surface tile %d/%d: read back (%d triangles)", k + 1, len(boxes), len(F))
         else:
-            m = settings.tile_overlap_m
-            sel = np.flatnonzero(np.all((xyz[:, :2] >= box[0] - m) & (xyz[:, :2] <= box[1] + m), axis=1))
-            if len(sel) < 100:
-                continue
-        normals = estimate_normals(xyz[sel], toward[sel], settings.voxel_m)
-        V, F = poisson(xyz[sel], normals, settings)
-        del normals
-        if len(boxes) > 1:
-            c = V[F].mean(1)[:, :2]
-            F = F[np.all((c >= box[0] - keep_m) & (c <= box[1] + keep_m), axis=1)]
-            V, F = _compact(V, F)
-        n_poisson += len(F)
-        V, F = simplify(V, F, settings.max_triangles)
-        if log is not None and len(boxes) > 1:
-            log.info("surface tile %d/%d: %d points, %d triangles", k + 1, len(boxes), len(sel), len(F))
+            xyz, toward = _points(cloud, None if len(boxes) == 1 else box, settings.tile_overlap_m)
+            npts = len(xyz)
+            if npts < 100:
+                V, F, npo = np.zeros((0, 3)), np.zeros((0, 3), np.int64), 0
+            else:
+                normals = estimate_normals(xyz, toward, settings.voxel_m)
+                del toward
+                V, F = poisson(xyz, normals, settings)
+                del normals, xyz
+                if len(boxes) > 1:
+                    c = V[F].mean(1)[:, :2]
+                    F = F[np.all((c >= box[0] - keep_m) & (c <= box[1] + keep_m), axis=1)]
+                    V, F = _compact(V, F)
+                npo = len(F)
+                V, F = simplify(V, F, settings.max_triangles)
+            if done is not None:
+                with atomic_path(done) as tmp:
+                    np.savez(tmp, V=V, F=F.astype(np.int32), poisson=npo, points=npts)
+            if log is not None and len(boxes) > 1:
+                log.info("surface tile %d/%d: %d points, %d triangles", k + 1, len(boxes), npts, len(F))
+        if not len(F):
+            continue
+        n_poisson += npo
         Vs.append(V)
         Fs.append(F + nv)
         nv += len(V)

@@ -40,9 +40,36 @@ def _project(v: View, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return uv, z
 
 
+def _chunks(cen: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Faces grouped by the ``size`` square cell of their centre: (order of the faces by cell,
+    start index of each cell's run in it)."""
+    ij = np.floor((cen[:, :2] - cen[:, :2].min(0)) / size).astype(np.int64)
+    cid = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    order = np.argsort(cid, kind="stable")
+    starts = np.flatnonzero(np.r_[True, cid[order][1:] != cid[order][:-1]])
+    return order, starts
+
+
+def _in_frustum(v: View, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Which boxes (``lo``/``hi``: (n, 3)) may hold something the view sees (conservative: a box is
+    out only when all its corners are beyond one side of the view's frustum)."""
+    corners = np.stack([np.stack([np.where(m & 1, hi[:, 0], lo[:, 0]), np.where(m & 2, hi[:, 1], lo[:, 1]),
+                                  np.where(m & 4, hi[:, 2], lo[:, 2])], 1) for m in range(8)], 1)   # (n, 8, 3)
+    xc = corners @ v.pose.R.T + v.pose.t
+    x, y, z = xc[..., 0], xc[..., 1], xc[..., 2]
+    fx, fy, cx, cy = v.K[0, 0], v.K[1, 1], v.K[0, 2], v.K[1, 2]
+    out = (np.all(z <= 0, 1) | np.all(fx * x < (-0.5 - cx) * z, 1) | np.all(fx * x > (v.width - 0.5 - cx) * z, 1)
+           | np.all(fy * y < (-0.5 - cy) * z, 1) | np.all(fy * y > (v.height - 0.5 - cy) * z, 1))
+    return ~out
+
+
 def choose_views(V: np.ndarray, F: np.ndarray, views: dict[str, View], vis_scale: float = 0.5,
-                 progress=None) -> tuple[list[str], np.ndarray]:
-    """(view names, index of the best view per face; -1 = none)."""
+                 progress=None, chunk_m: float = 50.0) -> tuple[list[str], np.ndarray]:
+    """(view names, index of the best view per face; -1 = none).
+
+    The surface is cut into ``chunk_m`` square chunks (one renderer part each, one shared origin:
+    the same depth as the whole surface drawn at once); each photo projects and draws only the
+    chunks its frustum reaches, so on a large site a photo costs what it sees, not the site."""
     from ..render.renderer import Renderer
 
     names = list(views)
@@ -53,29 +80,43 @@ def choose_views(V: np.ndarray, F: np.ndarray, views: dict[str, View], vis_scale
     best_score = np.zeros(len(F))
     any_best = np.full(len(F), -1, np.int64)
     any_score = np.zeros(len(F))
-    r = Renderer(Mesh([MeshPart(V, F, colors=np.full((len(V), 3), 128, np.uint8), name="surface")]))
+    order, starts = _chunks(cen, chunk_m)
+    runs = np.split(order, starts[1:])
+    lo = np.stack([V[F[r]].reshape(-1, 3).min(0) for r in runs])
+    hi = np.stack([V[F[r]].reshape(-1, 3).max(0) for r in runs])
+    r = Renderer()
+    origin = V.mean(0)
+    grey = np.full((len(V), 3), 128, np.uint8)
+    ids = []
+    for k, run in enumerate(runs):
+        f = F[run]
+        used, inv = np.unique(f, return_inverse=True)
+        ids += r.add_mesh(Mesh([MeshPart(V[used], inv.reshape(-1, 3), colors=grey[used], name=f"chunk{k}")]), origin=origin)
     try:
         for k, n in enumerate(names):
             v = views[n]
-            uv, z = _project(v, cen)
-            inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= v.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= v.height - 1)
-            to_cam = v.center - cen
-            dist = np.linalg.norm(to_cam, axis=1)
-            cos = np.abs(np.einsum("ij,ij->i", nrm, to_cam)) / np.maximum(dist, 1e-9)
-            score = np.where(inside, cos * (v.K[0, 0] / np.maximum(dist, 1e-9)) ** 2, 0.0)
-            better = score > any_score
-            any_best[better], any_score[better] = k, score[better]
-            idx = np.flatnonzero(inside & (score > best_score))
-            if len(idx):
-                cam = _gtkit_camera(v, vis_scale)
-                depth = r.render(cam, v.pose, with_rgb=False).depth
-                s = cam.width / v.width
-                px = np.clip(((uv[idx, 0] + 0.5) * s).astype(np.int64), 0, cam.width - 1)
-                py = np.clip(((uv[idx, 1] + 0.5) * s).astype(np.int64), 0, cam.height - 1)
-                dz = depth[py, px]
-                seen = np.isfinite(dz) & (z[idx] <= dz + np.maximum(0.3, 0.01 * dz))
-                idx = idx[seen]
-                best[idx], best_score[idx] = k, score[idx]
+            sel = np.flatnonzero(_in_frustum(v, lo, hi))
+            if len(sel):
+                fi = np.concatenate([runs[c] for c in sel])
+                uv, z = _project(v, cen[fi])
+                inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= v.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= v.height - 1)
+                to_cam = v.center - cen[fi]
+                dist = np.linalg.norm(to_cam, axis=1)
+                cos = np.abs(np.einsum("ij,ij->i", nrm[fi], to_cam)) / np.maximum(dist, 1e-9)
+                score = np.where(inside, cos * (v.K[0, 0] / np.maximum(dist, 1e-9)) ** 2, 0.0)
+                better = score > any_score[fi]
+                any_best[fi[better]], any_score[fi[better]] = k, score[better]
+                loc = np.flatnonzero(inside & (score > best_score[fi]))
+                if len(loc):
+                    cam = _gtkit_camera(v, vis_scale)
+                    depth = r.render(cam, v.pose, with_rgb=False, parts=[ids[c] for c in sel]).depth
+                    s = cam.width / v.width
+                    px = np.clip(((uv[loc, 0] + 0.5) * s).astype(np.int64), 0, cam.width - 1)
+                    py = np.clip(((uv[loc, 1] + 0.5) * s).astype(np.int64), 0, cam.height - 1)
+                    dz = depth[py, px]
+                    seen = np.isfinite(dz) & (z[loc] <= dz + np.maximum(0.3, 0.01 * dz))
+                    idx = fi[loc[seen]]
+                    best[idx], best_score[idx] = k, score[loc[seen]]
             if progress is not None:
                 progress.update(1)
     finally:
@@ -117,7 +158,10 @@ def _sample(views: dict[str, View], names: list[str], load_rgb, which: np.ndarra
             continue
         img = load_rgb(v).astype(np.float32)
         m = uv[ok].astype(np.float32)
-        out[idx[ok]] = cv2.remap(img, m[:, 0][None], m[:, 1][None], cv2.INTER_LINEAR)[0]
+        w = 4096                                   # the map as rows of 4096 (OpenCV's maps stay < 32767 a side)
+        pad = -len(m) % w
+        m = np.concatenate([m, np.zeros((pad, 2), np.float32)]).reshape(-1, w, 2)
+        out[idx[ok]] = cv2.remap(img, np.ascontiguousarray(m[..., 0]), np.ascontiguousarray(m[..., 1]), cv2.INTER_LINEAR).reshape(-1, 3)[:ok.sum()]
     return out
 
 
@@ -189,24 +233,28 @@ def textured_parts(V: np.ndarray, F: np.ndarray, views: dict[str, View], names: 
     """One textured part per photo that textures any face (``load_rgb(view)`` gives its undistorted RGB;
     ``gains`` (per photo, per channel) multiply its texture)."""
     parts = []
-    for k in np.unique(best[best >= 0]):
+    order = np.argsort(best, kind="stable")                  # faces grouped by photo (one pass, not one a photo)
+    keys = best[order]
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], len(order)]):
+        k = int(keys[a])
+        if k < 0:
+            continue
         v = views[names[k]]
-        f = F[best == k]
-        used = np.unique(f)
-        remap = np.full(len(V), -1, np.int64)
-        remap[used] = np.arange(len(used))
+        used, local = np.unique(F[order[a:b]], return_inverse=True)
+        local = local.reshape(-1, 3)
         uv, _ = _project(v, V[used])
         uv = np.clip(uv, -0.5, [v.width - 0.5, v.height - 0.5])
         x0 = int(max(0, np.floor(uv[:, 0].min() + 0.5) - pad))
         y0 = int(max(0, np.floor(uv[:, 1].min() + 0.5) - pad))
         x1 = int(min(v.width, np.ceil(uv[:, 0].max() + 0.5) + pad))
         y1 = int(min(v.height, np.ceil(uv[:, 1].max() + 0.5) + pad))
-        img = load_rgb(v)[y0:y1, x0:x1]
+        img = load_rgb(v)[y0:y1, x0:x1].copy()          # not a view: the whole photo is not kept
         if gains is not None and not np.allclose(gains[k], 1.0):
             img = np.clip(img * gains[k] + 0.5, 0, 255).astype(np.uint8)
         cw, ch = x1 - x0, y1 - y0
         tuv = np.stack([(uv[:, 0] + 0.5 - x0) / cw, 1.0 - (uv[:, 1] + 0.5 - y0) / ch], 1)
-        parts.append(MeshPart(V[used], remap[f], uv=tuv, texture=np.ascontiguousarray(img),
+        parts.append(MeshPart(V[used], local, uv=tuv, texture=np.ascontiguousarray(img),
                               name=v.name.replace("/", "_").rsplit(".", 1)[0]))
     unseen = F[best < 0]
     if len(unseen):
