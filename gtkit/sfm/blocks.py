@@ -29,6 +29,7 @@ from .database import (CameraGroup, FeatureSettings, MatchSettings, build_databa
                        image_diagnostics, match_pairs, read_descriptors)
 from .geometry import RegistrationError, model_cameras, model_poses
 from .georegister import GeoregisterSettings, check_gcp_clicks, georegister
+from .prior_ba import hold_by_positions
 from .pairs import block_pairs
 from .reference_report import write_reference_report
 
@@ -56,6 +57,7 @@ class SfmSettings:
     init_min_tri_angle_deg: float = 4.0  # mapper's initial pair (COLMAP: 16; short UAV baselines need less)
     min_tri_angle_deg: float = 1.0       # triangulation/filtering (COLMAP: 1.5)
     num_threads: int = 2
+    hold_by_positions: bool = True       # reference block: its positions as priors in a BA after georegistration (prior_ba)
 
 
 def list_images(folder: Path, root: Path, pattern: str = "*") -> list[str]:
@@ -411,6 +413,10 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     rec = merge_models([models[k] for k in kept]) if len(kept) > 1 else models[kept[0]]
     if len(kept) > 1:  # each model was georegistered on its own; the figures above are model 0's
         summary["georegistration"]["merged_models"] = kept
+    geo = summary.get("georegistration", {})
+    if kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3:
+        summary["held_by_positions"] = hold_by_positions(rec, positions, set(geo.get("outliers", [])), accuracy,
+                                                         num_threads=settings.num_threads)
     for k, info in enumerate(models_info):
         info["kept"] = k in kept
         if k in duplicate:

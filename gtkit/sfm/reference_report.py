@@ -19,6 +19,7 @@ def reference_report(summary: dict) -> dict:
             "georegistration": {**{k: geo.get(k) for k in GEO_KEYS if k in geo},
                                 **({"rmse_m": geo["rmse_inliers_m"]} if "rmse_inliers_m" in geo else {})},
             "gcp_residuals": geo.get("gcp_residuals", {}),
+            "held_by_positions": summary.get("held_by_positions"),
             "gcp_clicks_outside_block": summary.get("gcp_clicks_outside_block", {}),
             "models": [{k: v for k, v in m.items() if k != "photos"} for m in summary.get("models", [])],
             "unregistered": summary.get("unregistered", {}), "seconds": summary.get("seconds", {}),
@@ -46,6 +47,13 @@ def write_reference_report(paths: Paths, summary: dict) -> dict:
                   f"{g.get('n_checkpoints')} check points); {g.get('n_inliers')} inliers, RMSE {_f(g.get('rmse_m'))} m",
                   f"- GCP residual median {_f(g.get('gcp_median_err_m'))} m, RMSE {_f(g.get('gcp_rmse_m'))} m; "
                   f"check points median {_f(g.get('checkpoint_median_err_m'))} m"]
+    h = rep["held_by_positions"]
+    if h and h.get("applied"):
+        lines.append(f"- held by its positions in a pose-prior BA: {h['n_priors']} photos, sigma {_f(h['sigma_h_m'])} m "
+                     f"horizontal / {_f(h['sigma_v_m'])} m vertical ({h['n_stated_accuracy']} with a stated accuracy); "
+                     f"residual median {_f(h['residual_median_m']['before'])} -> {_f(h['residual_median_m']['after'])} m")
+    elif h:
+        lines.append(f"- not held by its positions: {h.get('reason')}")
     if rep["gcp_residuals"]:
         lines += ["", "| point | kind | residual (m) | dx | dy | dz | clicks used |", "|---|---|---|---|---|---|---|"]
         for n, r in rep["gcp_residuals"].items():
