@@ -9,9 +9,9 @@ def register(sub):
     p.add_argument("--sim3-max-error-m", type=float, default=None, help="Sim(3) RANSAC threshold (default 1.5 m)")
     p.add_argument("--tie-max-px", type=float, default=None, help="click residual threshold (default 4 px)")
     p.add_argument("--refine-query-intrinsics", action="store_true")
-    p.add_argument("--cross-matches", type=int, default=None, metavar="N",
-                   help="reference photos SIFT-matched with each query photo for automatic tie points "
-                        "(default 4; 0 = clicks only)")
+    p.add_argument("--no-auto-ties", action="store_true",
+                   help="no automatic tie points (query photos SIFT-matched to the reference block's 3D points): "
+                        "the annotators' clicks only")
     p.add_argument("--force", action="store_true")
     p.set_defaults(func=run)
 
@@ -26,7 +26,7 @@ def run(args):
     s = resolve(RegisterSettings(), "register", project, {
         "sim3_max_error_m": args.sim3_max_error_m, "tie_max_px": args.tie_max_px,
         "refine_query_intrinsics": True if args.refine_query_intrinsics else None,
-        "cross.ref_per_query": args.cross_matches})
+        "cross.enabled": False if args.no_auto_ties else None})
     r = run_register(project, s, force=args.force)
     failed = 0
     for seq, info in r["sequences"].items():

@@ -1,8 +1,22 @@
-"""Automatic tie points between the blocks: SIFT matches between each registered query photo and
-the reference photos that look at the same ground from a similar direction, verified by a
-fundamental-matrix RANSAC on undistorted pixels. They join the annotators' clicks as extra,
-unlisted tie points in the joint BA, where the same re-triangulation test (with the refined
-poses) drops any that disagree with the geometry."""
+"""Automatic tie points between the blocks: each registered query photo matched to the reference
+block's own 3D points, guided by the photo's pose.
+
+After the tie-point Sim(3) a query photo's pose is known to a metre or so. Every reference 3D point
+in front of it is projected into it and compared (SIFT descriptor, ratio test among the query
+keypoints within ``radius_px``) with the keypoints near its projection; the descriptor used is the one
+of the point's reference observation that looked at it from the closest direction, so a shallow
+query is compared with the oblique that saw the ground like it did. A PnP RANSAC on the undistorted
+pixels keeps the consistent matches; a second pass around the pose PnP found (``refine_radius_px``)
+adds the matches the first radius was too coarse for.
+
+Each kept match becomes a tie point ``auto:ref<reference point id>`` with the query observation(s)
+and up to ``track_obs`` of the point's reference observations: the point is fixed by the reference
+photos (held in the joint BA), so every match constrains its query photo in both image directions,
+where a two-view query-reference match constrains it only across its epipolar line. Matches spread
+over the whole photo hold a query block's position and tilt apart. They join the annotators' clicks
+as extra, unlisted tie points in the joint BA, where the same re-triangulation test (with the
+refined poses) drops any that disagree with the geometry.
+"""
 from __future__ import annotations
 
 import logging
@@ -12,22 +26,67 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pycolmap
+from scipy.spatial import cKDTree
 
 from ..camera import Camera
 from ..pose import Pose
 
 log = logging.getLogger(__name__)
-AUTO_PREFIX = "auto:"   # ids of automatic tie points: auto:<query image>:<reference image>:<match>
+AUTO_PREFIX = "auto:"   # ids of automatic tie points: auto:ref<reference point id>
 
 
 @dataclass
 class CrossMatchSettings:
-    ref_per_query: int = 4        # reference photos matched with each query photo (0: off)
-    max_view_angle_deg: float = 40.0  # only reference photos looking within this angle of the query's direction
-    ratio: float = 0.8            # Lowe ratio test
-    ransac_px: float = 2.0        # fundamental-matrix RANSAC threshold on undistorted pixels
-    min_inliers: int = 20
-    max_per_pair: int = 150       # keep at most this many matches a pair (spread, random)
+    enabled: bool = True          # automatic tie points (False: the annotators' clicks only)
+    radius_px: float = 40.0       # first pass: query keypoints this close to a reference point's projection
+    refine_radius_px: float = 6.0  # second pass, around the PnP pose of the first
+    ratio: float = 0.8            # best / second-best descriptor distance among those keypoints
+    pnp_px: float = 3.0           # PnP RANSAC threshold (undistorted pixels)
+    min_inliers: int = 15         # fewer PnP inliers: the photo gets no automatic tie points
+    max_per_photo: int = 600      # keep at most this many a photo (spread: random)
+    track_obs: int = 4            # reference observations each tie point takes from its reference point
+    descriptors_per_point: int = 4  # reference observations (directions) whose descriptors are kept per point
+
+
+class ReferencePoints:
+    """The reference block's 3D points with a few observations each (photo, pixel, descriptor,
+    direction from the point to the photo), chosen to span the directions the point was seen from."""
+
+    def __init__(self, rec: pycolmap.Reconstruction, db_path: Path, k: int):
+        names = {iid: im.name for iid, im in rec.images.items() if im.has_pose}
+        pids = [pid for pid, p in rec.points3D.items() if p.track.length() >= 2]
+        n = len(pids)
+        self.ids = np.array(pids, np.int64)
+        self.xyz = np.array([rec.points3D[p].xyz for p in pids]).reshape(-1, 3)
+        self.names = sorted(set(names.values()))
+        col = {nm: i for i, nm in enumerate(self.names)}
+        centre = {iid: rec.images[iid].projection_center() for iid in names}
+        self.img = np.full((n, k), -1, np.int32)
+        self.kp = np.zeros((n, k), np.int32)
+        self.xy = np.zeros((n, k, 2))
+        self.dirs = np.zeros((n, k, 3))
+        want: dict[int, list[tuple[int, int, int]]] = {}
+        for i, pid in enumerate(pids):
+            els = [e for e in rec.points3D[pid].track.elements if e.image_id in names]
+            d = np.array([centre[e.image_id] - self.xyz[i] for e in els])
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            pick = [0]
+            while len(pick) < min(k, len(els)):   # farthest direction from those picked so far
+                cos = (d @ d[pick].T).max(axis=1)
+                cos[pick] = 2.0
+                pick.append(int(np.argmin(cos)))
+            for j, e in enumerate(els[q] for q in pick):
+                self.img[i, j], self.kp[i, j] = col[names[e.image_id]], e.point2D_idx
+                self.xy[i, j] = rec.images[e.image_id].points2D[e.point2D_idx].xy
+                self.dirs[i, j] = d[pick[j]]
+                want.setdefault(e.image_id, []).append((i, j, e.point2D_idx))
+        self.desc = np.zeros((n, k, 128), np.uint8)
+        with pycolmap.Database.open(Path(db_path)) as db:
+            for iid, rows in want.items():
+                de = db.read_descriptors(iid)
+                de = np.asarray(de.data if hasattr(de, "data") else de)
+                r = np.array(rows)
+                self.desc[r[:, 0], r[:, 1]] = de[r[:, 2]]
 
 
 def _features(db_path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -41,55 +100,92 @@ def _features(db_path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def cross_matches(query_poses: dict[str, Pose], query_cams: dict[str, Camera], query_centroid: dict[str, np.ndarray],
-                  ref_poses: dict[str, Pose], ref_cams: dict[str, Camera], query_dbs: list[Path], ref_db: Path,
-                  s: CrossMatchSettings, seed: int = 0) -> dict[str, dict[str, tuple[float, float]]]:
-    """{auto tie id: {image: (x, y)}} with one query and one reference observation each."""
+def _match(pose: Pose, cam: Camera, ref: ReferencePoints, tree: cKDTree, dq: np.ndarray, radius: float,
+           ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """(reference point rows, query keypoint indices) of the ratio-test matches near the projections."""
+    uv, front = cam.project(pose.transform(ref.xyz))
+    ok = np.flatnonzero(front & cam.in_image(uv, -radius))
+    if not len(ok):
+        return np.zeros(0, int), np.zeros(0, int)
+    to_cam = pose.center - ref.xyz[ok]
+    to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
+    cos = np.einsum("nkd,nd->nk", ref.dirs[ok], to_cam)
+    cos[ref.img[ok] < 0] = -2.0
+    j = np.argmax(cos, axis=1)
+    dr = ref.desc[ok, j].astype(np.float32)
+    dist, nb = tree.query(uv[ok], k=8, distance_upper_bound=radius)
+    valid = np.isfinite(dist)
+    nb = np.where(valid, nb, 0)
+    d = np.linalg.norm(dq[nb] - dr[:, None, :], axis=2)
+    d[~valid] = np.inf
+    order = np.argsort(d, axis=1)
+    best = np.take_along_axis(d, order[:, :1], 1)[:, 0]
+    second = np.take_along_axis(d, order[:, 1:2], 1)[:, 0]
+    keep = np.isfinite(best) & np.isfinite(second) & (best < ratio * second)
+    rows, kq, dbest = ok[keep], nb[keep, order[keep, 0]], best[keep]
+    first = np.lexsort((dbest, kq))        # one reference point a query keypoint: the closest descriptor
+    uniq = np.ones(len(first), bool)
+    uniq[1:] = kq[first][1:] != kq[first][:-1]
+    sel = first[uniq]
+    return rows[sel], kq[sel]
+
+
+def _pnp(pose: Pose, cam: Camera, X: np.ndarray, uv: np.ndarray, px: float) -> tuple[Pose | None, np.ndarray]:
+    if len(X) < 6:
+        return None, np.zeros(len(X), bool)
+    pin = cam.pinhole_part()
+    und = cam.undistort_pixels(uv)
+    rvec, _ = cv2.Rodrigues(pose.R)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(X, und, pin.K(), None, rvec.copy(), pose.t.reshape(3, 1).copy(),
+                                             useExtrinsicGuess=True, iterationsCount=500, reprojectionError=px,
+                                             confidence=0.999, flags=cv2.SOLVEPNP_ITERATIVE)
+    mask = np.zeros(len(X), bool)
+    if not ok or inl is None:
+        return None, mask
+    mask[inl.ravel()] = True
+    return Pose(cv2.Rodrigues(rvec)[0], tvec.ravel()), mask
+
+
+def cross_matches(query_poses: dict[str, Pose], query_cams: dict[str, Camera], query_dbs: list[Path],
+                  ref_rec: pycolmap.Reconstruction, ref_db: Path, s: CrossMatchSettings,
+                  seed: int = 0) -> dict[str, dict[str, tuple[float, float]]]:
+    """{auto tie id: {image: (x, y)}}: the query photos that matched a reference point + up to
+    ``s.track_obs`` of its reference observations (see the module docstring)."""
     query_dbs = [d for d in query_dbs if Path(d).is_file()]
-    if s.ref_per_query <= 0 or not Path(ref_db).is_file() or not query_dbs:
+    if not s.enabled or not Path(ref_db).is_file() or not query_dbs or ref_rec.num_points3D() == 0:
         return {}
     rng = np.random.default_rng(seed)
+    ref = ReferencePoints(ref_rec, ref_db, s.descriptors_per_point)
     qf = {}
     for d in query_dbs:
         qf.update(_features(d))
-    rf = _features(ref_db)
-    ref_names = [n for n in ref_poses if n in rf]
-    rdirs = np.array([ref_poses[n].R[2] for n in ref_names])       # optical axes in world
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    out, n_pairs = {}, 0
-    for qn, qp in query_poses.items():
-        if qn not in qf or qn not in query_centroid:
+    out: dict[str, dict[str, tuple[float, float]]] = {}
+    n_photos = 0
+    for qn, pose in query_poses.items():
+        if qn not in qf or len(qf[qn][0]) < 8:
             continue
-        X = query_centroid[qn]
-        cos = rdirs @ qp.R[2]
-        cand = []
-        for k, rn in enumerate(ref_names):
-            if cos[k] < np.cos(np.radians(s.max_view_angle_deg)):
-                continue
-            uv, front = ref_cams[rn].project(ref_poses[rn].transform(X[None]))
-            if front[0] and ref_cams[rn].in_image(uv, 0.15 * ref_cams[rn].width)[0]:
-                cand.append((cos[k], rn))
-        for _, rn in sorted(cand, reverse=True)[:s.ref_per_query]:
-            kq, dq = qf[qn]
-            kr, dr = rf[rn]
-            if len(kq) < 8 or len(kr) < 8:
-                continue
-            m = matcher.knnMatch(dq, dr, k=2)
-            good = [a for a, b in (p for p in m if len(p) == 2) if a.distance < s.ratio * b.distance]
-            if len(good) < s.min_inliers:
-                continue
-            iq = np.array([g.queryIdx for g in good])
-            ir = np.array([g.trainIdx for g in good])
-            pq = query_cams[qn].undistort_pixels(kq[iq])
-            pr = ref_cams[rn].undistort_pixels(kr[ir])
-            F, mask = cv2.findFundamentalMat(pq, pr, cv2.FM_RANSAC, s.ransac_px, 0.999, 2000)
-            if F is None or mask is None or mask.sum() < s.min_inliers:
-                continue
-            inl = np.flatnonzero(mask.ravel())
-            if len(inl) > s.max_per_pair:
-                inl = rng.choice(inl, s.max_per_pair, replace=False)
-            n_pairs += 1
-            for i in inl:
-                out[f"{AUTO_PREFIX}{qn}:{rn}:{i}"] = {qn: tuple(kq[iq[i]]), rn: tuple(kr[ir[i]])}
-    log.info("cross-block matches: %d from %d query-reference pairs", len(out), n_pairs)
+        kq, dq = qf[qn]
+        cam = query_cams[qn]
+        tree = cKDTree(kq)
+        rows, kk = _match(pose, cam, ref, tree, dq, s.radius_px, s.ratio)
+        p1, inl = _pnp(pose, cam, ref.xyz[rows], kq[kk], s.pnp_px)
+        if p1 is None or inl.sum() < s.min_inliers:
+            continue
+        rows, kk = _match(p1, cam, ref, tree, dq, s.refine_radius_px, s.ratio)
+        _, inl = _pnp(p1, cam, ref.xyz[rows], kq[kk], s.pnp_px)
+        if inl.sum() < s.min_inliers:
+            continue
+        rows, kk = rows[inl], kk[inl]
+        if len(rows) > s.max_per_photo:
+            pick = rng.choice(len(rows), s.max_per_photo, replace=False)
+            rows, kk = rows[pick], kk[pick]
+        n_photos += 1
+        for r, k in zip(rows, kk):
+            tid = f"{AUTO_PREFIX}ref{ref.ids[r]}"
+            if tid not in out:
+                obs = [(ref.names[ref.img[r, j]], tuple(ref.xy[r, j])) for j in range(ref.img.shape[1])
+                       if ref.img[r, j] >= 0][:s.track_obs]
+                out[tid] = dict(obs)
+            out[tid].setdefault(qn, tuple(kq[k]))
+    log.info("automatic tie points: %d reference points matched in %d query photos", len(out), n_photos)
     return out

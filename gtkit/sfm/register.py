@@ -310,6 +310,21 @@ def retriangulate_ties(j: Joint, settings: RegisterSettings) -> tuple[dict, dict
     return use, dropped
 
 
+def _placed_by_reference(j: Joint, ties: dict[str, dict], settings: RegisterSettings) -> dict:
+    """Tie points triangulated from their reference observations alone: id -> (xyz, all its joint images)."""
+    poses, cams = j.poses_cams()
+    out = {}
+    for tid, obs in ties.items():
+        refs = [n for n in obs if n.startswith("reference/") and n in poses]
+        if len(refs) < 2 or not any(n.startswith("queries/") and n in poses for n in obs):
+            continue
+        tri = triangulate_clicks([cams[n] for n in refs], [poses[n] for n in refs], np.array([obs[n] for n in refs]),
+                                 max_px=_max_px(tid, settings), min_angle_deg=0.5)
+        if tri.xyz is not None:
+            out[tid] = (tri.xyz, [n for n, u in zip(refs, tri.used) if u] + [n for n in obs if n.startswith("queries/") and n in poses])
+    return out
+
+
 def _bundle_adjust(rec, ref_ids, settings: RegisterSettings, loss: str, covariance: bool = False):
     cfg = pycolmap.BundleAdjustmentConfig()
     ref_cams = {rec.images[i].camera_id for i in ref_ids}
@@ -405,8 +420,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
                               lambda obs: _place(obs, ref_cache["poses"], ref_cache["cams"], ref_rec,
                                                  settings.tie_max_px)[0], settings.tie_max_px)
         if res:
-            seq_report[seq]["left_out_by_sfm"] = {n: {k: v for k, v in r.items() if k != "centroid"}
-                                                  for n, r in res.items()}
+            seq_report[seq]["left_out_by_sfm"] = res
             resected.update({n: r for n, r in res.items() if r["resected"]})
     t_sim = time.time()
     result = {"sequences": seq_report, "n_registered": 0, "n_images": _count_query_images(P, seq_dirs), "images": {}}
@@ -422,30 +436,24 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     clicks = {tp.id: {o.image: (o.x, o.y) for o in tp.observations}
               for tp in tiepoints if any(o.image.startswith(prefixes) for o in tp.observations)}
     t_cm = time.time()
-    qp, qc, cen = {}, {}, {}
+    qp, qc = {}, {}
     for rec_q in blocks.values():
         qp.update(model_poses(rec_q))
         qc.update(model_cameras(rec_q))
-        for im in rec_q.images.values():
-            if im.has_pose:
-                pts = [rec_q.points3D[p.point3D_id].xyz for p in im.points2D if p.has_point3D()]
-                if pts:
-                    cen[im.name] = np.median(np.array(pts), axis=0)
-                elif im.name in resected:
-                    cen[im.name] = np.array(resected[im.name]["centroid"])
-    auto = cross_matches(qp, qc, cen, ref_cache["poses"], ref_cache["cams"],
-                         [P.stage(QUERIES_STAGE) / sq / "database.db" for sq in blocks],
+    auto = cross_matches(qp, qc, [P.stage(QUERIES_STAGE) / sq / "database.db" for sq in blocks], ref_rec,
                          P.stage(REFERENCE_STAGE) / "database.db", settings.cross)
     clicks.update(auto)
     t_cm = time.time() - t_cm
     j = build_joint(ref_rec, blocks, clicks)
-    # pass a: Sim(3) inliers, robust loss
+    # pass a: Sim(3) inliers and the automatic tie points (placed by their reference photos alone, so
+    # the query poses move to what both say before any automatic tie is judged by its residual)
     first = {}
     for st in statuses.values():
         for s in st:
             if s.inlier:
                 imgs = [n for n in s.ref_used + s.query_used if n in j.image_ids]
                 first[s.id] = (s.ref_xyz, imgs)
+    first.update(_placed_by_reference(j, {t: j.clicks[t] for t in auto if t in j.clicks}, settings))
     j.set_ties(first)
     _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
     # pass b: every tie point re-triangulated from all its clicks with the refined poses
@@ -461,6 +469,8 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             r = np.inf if proj is None else float(np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy))
             if r > _max_px(tid, settings):
                 dropped.setdefault(tid, []).append({"image": im.name, "residual_px": r})
+                if im.points2D[e.point2D_idx].point3D_id != pid:   # (rare) no longer linked to it
+                    continue
                 if j.rec.points3D[pid].track.length() > 2:
                     j.rec.delete_observation(e.image_id, e.point2D_idx)
                 else:
@@ -496,7 +506,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         info = {"sequence": im.name.split("/")[1], "n_points": int(im.num_points3D),
                 "n_tiepoints": tie_count.get(im.name, 0), "n_auto_tiepoints": auto_count.get(im.name, 0)}
         if im.name in resected:  # left out by its sequence's SfM, registered on its own
-            info["resected"] = {k: v for k, v in resected[im.name].items() if k != "centroid"}
+            info["resected"] = resected[im.name]
         if ok:
             covs[im.name] = pose.covariance
             info["sigma_pos_m"] = float(np.sqrt(np.trace(pose.center_covariance())))

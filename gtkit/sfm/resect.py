@@ -118,8 +118,6 @@ def resect_sequence(seq: str, qrec: pycolmap.Reconstruction, block_json: Path, i
                 ties.append((np.array([mine[0].x, mine[0].y]), np.asarray(X, float)))
         r = resect_photo(name, camera, ties, images / name, max_px)
         rec = {"sfm_reason": why, **r.record()}
-        if ties:  # where the photo looks (for the automatic tie points with the reference photos)
-            rec["centroid"] = np.median(np.array([t[1] for t in ties]), axis=0).tolist()
         if r.pose is not None:
             add_to_block(qrec, name, cam_id, r.pose)
             log.info("register: %s (left out by its sequence: %s) resected from %d of %d clicks",
