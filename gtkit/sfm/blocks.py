@@ -21,7 +21,8 @@ from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
 from ..io.odm import read_gcp_list, read_geo_txt
 from ..io.poses import read_intrinsics, write_intrinsics, write_poses
-from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
+from ..project import (Project, cpu_seconds, file_fingerprint, mark_stage_done, settings_dict, settings_key,
+                       stage_done, start_stage_clock)
 from . import quiet_colmap
 from ..progress import progress_bar
 from ..settings import resolve
@@ -294,7 +295,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     ``kind``: 'reference' or 'sequence' (adds sequential pairs)."""
     P = project.paths
     out.mkdir(parents=True, exist_ok=True)
-    t0 = time.time()
+    t0, c0 = time.time(), cpu_seconds()
     positions, accuracy = gps_positions_and_accuracy(project, names)
     look = pairing_positions(project, names, positions) if settings.pair_by_footprint else positions
     groups = camera_groups(project, names, positions)
@@ -318,7 +319,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         build_database(db, P.images, groups, settings.features, settings.gps_prior_sigma_m,
                        progress=bar.update, accuracy=accuracy)
         bar.close()
-    t_feat = _step(label, f"features of {len(names)} photos", t0)
+    t_feat, c_feat = _step(label, f"features of {len(names)} photos", t0), cpu_seconds()
     if not reuse:
         pairs, pairs_used = block_pairs(
             names, look, lambda: read_descriptors(db), kind=kind, exhaustive_max=m.exhaustive_max_images,
@@ -335,11 +336,12 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         import json
         pj = json.loads((out / "pairs.json").read_text())
         pairs_used, n_pairs = pj["strategies"], pj["n_pairs"]
-    t_match = _step(label, f"matching ({n_pairs} pairs)", t_feat)
+    t_match, c_match = _step(label, f"matching ({n_pairs} pairs)", t_feat), cpu_seconds()
     all_ids, calibrated, no_prior = _camera_ids(db, groups)
     policy = intrinsics_policy(settings, calibrated, no_prior, all_ids, len(positions))
     models = _map(db, P.images, out / "mapper", settings, policy, len(names), label)
     t_map = _step(label, f"mapping ({sum(r.num_reg_images() for r in models)} photos in {len(models)} models)", t_match)
+    c_map = cpu_seconds()
     summary = {"block": label, "reused_database": reuse, "n_images": len(names), "pairings": pairs_used,
                "n_pairs": n_pairs, "n_cameras": len(groups), "n_gps": len(positions),
                "intrinsics_policy": {"mode": policy["mode"], "refined_focal": policy["refine_focal"],
@@ -418,7 +420,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         elif k not in kept:
             info["reason"] = ("not placed in the world: " + info.get("georegistration", {}).get("error", "")
                               if georegister_block else "not the largest model of an unregistered block")
-    t_geo = time.time()
+    t_geo, c_geo = time.time(), cpu_seconds()
     diag = image_diagnostics(db)
     registered = {im.name for im in rec.images.values() if im.has_pose}
     in_other = {n: info for info in models_info if not info["kept"] for n in info["photos"]}
@@ -446,6 +448,8 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     write_intrinsics(out / "intrinsics.txt", model_cameras(rec))
     summary["seconds"] = {"features": t_feat - t0, "matching": t_match - t_feat, "mapping": t_map - t_match,
                           "georegistration": t_geo - t_map}
+    summary["cpu_seconds"] = {"features": round(c_feat - c0, 1), "matching": round(c_match - c_feat, 1),
+                              "mapping": round(c_map - c_match, 1), "georegistration": round(c_geo - c_map, 1)}
     write_json(out / "block.json", summary)
     return BlockResult(rec, summary)
 
@@ -464,6 +468,7 @@ def run_reference(project: Project | str | Path, settings: SfmSettings | None = 
     if not force and stage_done(out, settings, inputs):
         import json
         return json.loads((out / "block.json").read_text())
+    start_stage_clock(out)
     res = build_block(project, names, out, "reference", settings, georegister_block=True, label="reference block")
     write_reference_report(P, res.summary)
     if res.rec is None:
@@ -500,6 +505,7 @@ def run_queries(project: Project | str | Path, settings: SfmSettings | None = No
             result[seq] = json.loads((out / "block.json").read_text())
             continue
         log.info("query sequence %s: %d photos", seq, len(names))
+        start_stage_clock(out)
         res = build_block(project, names, out, "sequence", settings, georegister_block=True, label=f"query sequence {seq}")
         result[seq] = res.summary
         if res.rec is not None:
