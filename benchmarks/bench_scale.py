@@ -218,7 +218,8 @@ def stage_costs(root: Path) -> dict[str, dict]:
         peaks = [c["peak_gb"] for c in costs]
         row["peak_gb"] = max(peaks) if all(v is not None for v in peaks) else None
         if row["disk_mb"] is None:  # measured now: the outputs are still there
-            row["disk_mb"] = round(disk_bytes(*[d for d, _r in recs]) / 2**20, 1)
+            extra = [work / "localize_db"] if name == "localize" else []
+            row["disk_mb"] = round(disk_bytes(*[d for d, _r in recs], *extra) / 2**20, 1)
         if row["wall_s"] is None:  # older records: what the stage timed itself
             row["wall_s"] = _old_wall(name, [r for _d, r in recs], [d for d, _r in recs])
         out[name] = row
@@ -267,30 +268,64 @@ def _f(v, fmt="{:.0f}"):
     return "-" if v is None else fmt.format(v)
 
 
-def table(projects: list[Path]) -> tuple[str, dict]:
-    sites = [site_info(p) for p in projects]
-    costs = [stage_costs(p) for p in projects]
-    lines = ["| site | area km² | photos | queries | views (kept) |", "|---|---|---|---|---|"]
+def _merge(sites: list[dict], costs: list[dict]) -> tuple[list[dict], list[dict]]:
+    """Projects of the same preset and seed are one site (e.g. a pristine sample beside a copy that
+    ran some stages): each stage from the first project that has it with a wall time; the sample
+    row from the one with the most disk (a complete sample)."""
+    out_s, out_c, index = [], [], {}
+    for s, c in zip(sites, costs):
+        k = (s["preset"], s["seed"])
+        if k not in index:
+            index[k] = len(out_s)
+            out_s.append(dict(s))
+            out_c.append(dict(c))
+            continue
+        ms, mc = out_s[index[k]], out_c[index[k]]
+        for key, v in s.items():
+            if ms.get(key) is None:
+                ms[key] = v
+        for stage, row in c.items():
+            have = mc.get(stage)
+            if stage == "sample" and have and row.get("disk_mb") and (have.get("disk_mb") or 0) < row["disk_mb"] \
+                    and have.get("cpu_s") is None:
+                mc[stage] = row
+            elif have is None or (have.get("wall_s") is None and row.get("wall_s") is not None):
+                mc[stage] = row
+    return out_s, out_c
+
+
+def _cell(rows: list[dict]) -> str:
+    """Median over the seeds of wall / CPU s, peak GB, disk GB (n seeds with the figure)."""
+    def med(key):
+        v = [r[key] for r in rows if r.get(key) is not None]
+        return (float(np.median(v)), len(v)) if v else (None, 0)
+    (w, nw), (c, nc), (pk, _), (d, _) = med("wall_s"), med("cpu_s"), med("peak_gb"), med("disk_mb")
+    old = "*" if any(r.get("old") for r in rows) else ""
+    n = f" (n={max(nw, nc)})" if max(nw, nc) > 1 else ""
+    return (f"{_f(w)} / {_f(c)} s, {_f(pk, '{:.2f}')} GB, {_f(d if d is None else d / 1024, '{:.2f}')} GB"
+            f"{old}{n}")
+
+
+def table(projects: list[Path], per_site: bool = False) -> tuple[str, dict]:
+    sites, costs = _merge([site_info(p) for p in projects], [stage_costs(p) for p in projects])
+    lines = ["| site | area km² | reference photos | query photos (wide) | database views (kept) |",
+             "|---|---|---|---|---|"]
     for s in sites:
         lines.append(f"| {s['preset']} seed {s['seed']} | {_f(s['area_km2'], '{:.3g}')} | {_f(s['photos'])} | "
                      f"{_f(s['queries'])} | {_f(s['views'])} ({_f(s['views_kept'])}) |")
-    lines += ["", "| stage | " + " | ".join(f"{s['preset']} {s['seed']}" for s in sites) + " |",
-              "|---|" + "---|" * len(sites)]
-    for name, _folder, _drv in STAGES:
-        cells = []
-        for c in costs:
-            r = c.get(name)
-            if r is None:
-                cells.append("")
-                continue
-            peak = _f(r["peak_gb"], "{:.2f}")
-            disk = _f(r["disk_mb"] and r["disk_mb"] / 1024, "{:.2f}")
-            cells.append(f"{_f(r['wall_s'])} / {_f(r['cpu_s'])} s, {peak} GB, {disk} GB disk" + (" *" if r["old"] else ""))
-        lines.append(f"| {name.strip() if not name.startswith('  ') else '↳ ' + name.strip()} | " + " | ".join(cells) + " |")
-    # exponents over sizes (medians per preset)
     by_preset: dict[str, list[int]] = {}
     for i, s in enumerate(sites):
         by_preset.setdefault(s["preset"], []).append(i)
+    groups = ({f"{s['preset']} {s['seed']}": [i] for i, s in enumerate(sites)} if per_site else
+              {f"{p} (seeds {', '.join(str(sites[i]['seed']) for i in idx)})": idx for p, idx in by_preset.items()})
+    lines += ["", "| stage | " + " | ".join(groups) + " |", "|---|" + "---|" * len(groups)]
+    for name, _folder, _drv in STAGES:
+        cells = []
+        for idx in groups.values():
+            rows = [costs[i][name] for i in idx if name in costs[i]]
+            cells.append(_cell(rows) if rows else "")
+        label = "↳ " + name.strip() if name.startswith("  ") else name
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
     fits = {}
     if len(by_preset) >= 2:
         lines += ["", "| stage | grows with | exponent wall | exponent CPU | exponent peak memory | exponent disk |",
@@ -321,6 +356,7 @@ def main(argv=None) -> None:
     ap.add_argument("--code", type=Path, default=ROOT, help="the gtkit checkout to run (default: this one)")
     ap.add_argument("--stop-after", choices=("sample",), help="only create the sample (measured)")
     ap.add_argument("--max-rss-gb", type=float, default=6.0, help="kill a measured run whose processes exceed this")
+    ap.add_argument("--per-site", action="store_true", help="one column a site instead of the median per preset")
     ap.add_argument("--json", type=Path, help="also write the rows and fits here")
     a = ap.parse_args(argv)
     projects = list(a.projects)
@@ -332,10 +368,10 @@ def main(argv=None) -> None:
         if not (p / "project.toml").is_file():
             ap.error(f"not a gtkit project: {p}")
     load = os.getloadavg()
-    text, data = table(projects)
+    text, data = table(projects, a.per_site)
     print(text)
     print(f"\ncells: wall / CPU seconds (CPU = process + reaped children), peak RSS of one process, disk of the "
-          f"stage's outputs; * = an older record (no CPU/memory; wall from the stage's own timing). "
+          f"stage's outputs; median over a preset's seeds; * = an older record (no CPU/memory; wall from the stage's own timing). "
           f"Load average now {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f}: wall seconds taken under load are "
           f"upper bounds.")
     if a.json:
