@@ -56,6 +56,9 @@ class SfmSettings:
     gps_prior_sigma_m: float = 5.0    # sigma of the CARTESIAN pose priors (geo.txt accuracy where stated)
     init_min_tri_angle_deg: float = 4.0  # mapper's initial pair (COLMAP: 16; short UAV baselines need less)
     min_tri_angle_deg: float = 1.0       # triangulation/filtering (COLMAP: 1.5)
+    # incremental (COLMAP) | global (GLOMAP: rotation averaging + global positioning + BA) | auto:
+    # global from GLOBAL_MAPPER_MIN_PHOTOS photos up (see there: never measured to win yet)
+    mapper: str = "auto"
     num_threads: int = 2
 
 
@@ -147,9 +150,28 @@ def _camera_ids(db: Path, groups: list[CameraGroup]) -> tuple[set[int], set[int]
     return set(cams), calibrated, no_prior
 
 
+MAPPERS = ("incremental", "global", "auto")
+# ``mapper = "auto"`` uses GLOMAP from this many photos up. Measured (README, "Scale"): on small
+# (120 photos, seeds 1 and 2) global was not faster than incremental and its cameras were further
+# from truth; it was not measured on medium or large. So auto = incremental until it is shown to win.
+GLOBAL_MAPPER_MIN_PHOTOS: int | None = None
+
+
+def choose_mapper(mapper: str, n_images: int) -> str:
+    """The mapper a block of ``n_images`` photos gets (``auto`` resolved)."""
+    if mapper not in MAPPERS:
+        raise GtkitError(f"unknown sfm.mapper {mapper!r} (choose from {', '.join(MAPPERS)})")
+    if mapper != "auto":
+        return mapper
+    return "global" if GLOBAL_MAPPER_MIN_PHOTOS is not None and n_images >= GLOBAL_MAPPER_MIN_PHOTOS else "incremental"
+
+
 def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: dict, n_images: int,
          label: str) -> list[pycolmap.Reconstruction]:
-    """Incremental mapping; every model found, largest first. Progress: photos registered so far."""
+    """Incremental or global mapping (``settings.mapper``); every model found, largest first.
+    Progress: photos registered so far (the global mapper reports once, at the end)."""
+    if choose_mapper(settings.mapper, n_images) == "global":
+        return _map_global(db, image_root, out, settings, policy, n_images, label)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = settings.num_threads
     opts.random_seed = 0
@@ -172,6 +194,35 @@ def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: d
     models = pycolmap.incremental_mapping(db, image_root, out, options=opts,
                                           initial_image_pair_callback=lambda: bar.update(2),
                                           next_image_callback=lambda: bar.update(1))
+    bar.close()
+    return sorted(models.values(), key=lambda r: -r.num_reg_images())
+
+
+def _map_global(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: dict, n_images: int,
+                label: str) -> list[pycolmap.Reconstruction]:
+    """GLOMAP (``pycolmap.global_mapping``). Its BA refines intrinsics of every camera or of none
+    (no per-camera constants): with any fixed camera (cameras.txt) none is refined here; the final
+    BA of :func:`build_block` still refines the free ones. GPS priors do not enter its BA."""
+    opts = pycolmap.GlobalPipelineOptions()
+    opts.num_threads = settings.num_threads
+    opts.random_seed = 0
+    opts.min_num_matches = settings.matching.min_num_inliers
+    opts.min_model_size = 3
+    opts.mapper.num_threads = settings.num_threads
+    opts.mapper.random_seed = 0
+    opts.mapper.min_tri_angle_deg = settings.min_tri_angle_deg
+    opts.mapper.retriangulation.min_angle = settings.min_tri_angle_deg
+    ba = opts.mapper.bundle_adjustment
+    free = not policy["constant_cameras"]
+    ba.refine_focal_length = bool(policy["refine_focal"]) and free
+    ba.refine_extra_params = bool(policy["refine_distortion"]) and free
+    ba.refine_principal_point = False
+    ba.ceres.use_gpu = False
+    opts.mapper.global_positioning.use_gpu = False
+    out.mkdir(parents=True, exist_ok=True)
+    bar = progress_bar(n_images, f"{label}: photos registered (global mapper)")
+    models = pycolmap.global_mapping(db, image_root, out, options=opts)
+    bar.update(sum(r.num_reg_images() for r in models.values()))
     bar.close()
     return sorted(models.values(), key=lambda r: -r.num_reg_images())
 
@@ -290,9 +341,11 @@ def _step(label: str, what: str, t0: float) -> float:
 
 
 def build_block(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings,
-                georegister_block: bool, label: str) -> BlockResult:
+                georegister_block: bool, label: str, executor=None) -> BlockResult:
     """Features, pairs, mapping, optional georegistration; writes the block's files to ``out``.
-    ``kind``: 'reference' or 'sequence' (adds sequential pairs)."""
+    ``kind``: 'reference' or 'sequence' (adds sequential pairs). ``executor``: None extracts and
+    matches in this process; an :class:`~gtkit.localize.executors.ExecutorSettings` runs feature
+    extraction and matching as tasks on that executor (same database)."""
     P = project.paths
     out.mkdir(parents=True, exist_ok=True)
     t0, c0 = time.time(), cpu_seconds()
@@ -315,10 +368,18 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     n_pairs = None
     if not reuse:
         key_file.unlink(missing_ok=True)
-        bar = progress_bar(len(names), f"{label}: features")
-        build_database(db, P.images, groups, settings.features, settings.gps_prior_sigma_m,
-                       progress=bar.update, accuracy=accuracy)
-        bar.close()
+        from ..localize.executors import make_executor
+
+        ex = make_executor(executor) if executor is not None else None
+        try:
+            bar = progress_bar(len(names), f"{label}: features")
+            build_database(db, P.images, groups, settings.features, settings.gps_prior_sigma_m,
+                           progress=bar.update, accuracy=accuracy, executor=ex)
+            bar.close()
+        except BaseException:
+            if ex is not None:
+                ex.close()
+            raise
     t_feat, c_feat = _step(label, f"features of {len(names)} photos", t0), cpu_seconds()
     if not reuse:
         pairs, pairs_used = block_pairs(
@@ -327,9 +388,13 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
             spatial_max_m=m.spatial_max_distance_m, retrieval_k=m.retrieval_neighbors,
             retrieval_always=m.retrieval_always, sequential_overlap=m.sequential_overlap if kind == "sequence" else 0)
         n_pairs = len(pairs)
-        bar = progress_bar(len(pairs), f"{label}: pairs matched ({'+'.join(pairs_used)})")
-        match_pairs(db, pairs, m, out, progress=bar.update)
-        bar.close()
+        try:
+            bar = progress_bar(len(pairs), f"{label}: pairs matched ({'+'.join(pairs_used)})")
+            match_pairs(db, pairs, m, out, progress=bar.update, executor=ex)
+            bar.close()
+        finally:
+            if ex is not None:
+                ex.close()
         write_text(key_file, db_key + "\n")
         write_json(out / "pairs.json", {"strategies": pairs_used, "n_pairs": n_pairs})
     elif (out / "pairs.json").is_file():
@@ -454,8 +519,9 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     return BlockResult(rec, summary)
 
 
-def run_reference(project: Project | str | Path, settings: SfmSettings | None = None, force: bool = False) -> dict:
-    """``gtkit sfm DIR --block reference``."""
+def run_reference(project: Project | str | Path, settings: SfmSettings | None = None, force: bool = False,
+                  executor=None) -> dict:
+    """``gtkit sfm DIR --block reference``. ``executor``: see :func:`build_block`."""
     quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
     settings = settings or resolve(SfmSettings(), "sfm", project)
@@ -469,7 +535,9 @@ def run_reference(project: Project | str | Path, settings: SfmSettings | None = 
         import json
         return json.loads((out / "block.json").read_text())
     start_stage_clock(out)
-    res = build_block(project, names, out, "reference", settings, georegister_block=True, label="reference block")
+    choose_mapper(settings.mapper, len(names))  # a bad mapper name fails before the features
+    res = build_block(project, names, out, "reference", settings, georegister_block=True, label="reference block",
+                      executor=executor)
     write_reference_report(P, res.summary)
     if res.rec is None:
         raise GtkitError(res.summary["error"], out)
@@ -480,7 +548,7 @@ def run_reference(project: Project | str | Path, settings: SfmSettings | None = 
 
 
 def run_queries(project: Project | str | Path, settings: SfmSettings | None = None, force: bool = False,
-                sequences: list[str] | None = None) -> dict:
+                sequences: list[str] | None = None, executor=None) -> dict:
     """``gtkit sfm DIR --block queries``: one model per sequence. A failed sequence is reported
     with its reason; the others still finish."""
     import json
@@ -506,7 +574,8 @@ def run_queries(project: Project | str | Path, settings: SfmSettings | None = No
             continue
         log.info("query sequence %s: %d photos", seq, len(names))
         start_stage_clock(out)
-        res = build_block(project, names, out, "sequence", settings, georegister_block=True, label=f"query sequence {seq}")
+        res = build_block(project, names, out, "sequence", settings, georegister_block=True, label=f"query sequence {seq}",
+                          executor=executor)
         result[seq] = res.summary
         if res.rec is not None:
             mark_stage_done(out, settings, inputs, n_registered=res.summary["n_registered"])
