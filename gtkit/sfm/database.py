@@ -68,6 +68,8 @@ def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], s
     Returns {image name: image_id}."""
     db_path = Path(db_path)
     db_path.unlink(missing_ok=True)
+    with pycolmap.Database.open(db_path):  # created empty: import_images needs it to exist
+        pass
     ext = _extraction_options(settings)
     tasks = []
     for g in groups:
