@@ -222,6 +222,9 @@ def stage_costs(root: Path) -> dict[str, dict]:
             row["disk_mb"] = round(disk_bytes(*[d for d, _r in recs], *extra) / 2**20, 1)
         if row["wall_s"] is None:  # older records: what the stage timed itself
             row["wall_s"] = _old_wall(name, [r for _d, r in recs], [d for d, _r in recs])
+        if row["peak_gb"] is None and name == "model":  # the model build measures its own peak
+            pk = [max((r.get("summary", {}).get("peak_memory_gb") or {}).values(), default=None) for _d, r in recs]
+            row["peak_gb"] = max(pk) if all(v is not None for v in pk) else None
         out[name] = row
     blk = _json(work / "sfm_reference" / "block.json")
     steps = blk.get("seconds") or {}
