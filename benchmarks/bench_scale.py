@@ -47,6 +47,7 @@ STAGES = [
     ("model", "model", "photos"),
     ("render_db", "render_db", "views"),
     ("localize", "localize", "views"),
+    ("  db features", None, "views"),
     ("track", "track", "queries"),
 ]
 
@@ -233,6 +234,10 @@ def stage_costs(root: Path) -> dict[str, dict]:
         if k in steps:
             out[f"  {k}"] = {"wall_s": round(steps[k], 1), "cpu_s": cpu_steps.get(k), "peak_gb": None,
                              "disk_mb": None, "old": False}
+    loc = _json(work / "localize" / "stage.json").get("summary", {})
+    if loc.get("db_features_s") is not None and loc.get("db_features_views"):
+        out["  db features"] = {"wall_s": loc["db_features_s"], "cpu_s": None, "peak_gb": None, "disk_mb": None,
+                                "old": False, "per_view_s": loc["db_features_s"] / loc["db_features_views"]}
     return out
 
 
