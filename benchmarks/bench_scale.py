@@ -249,8 +249,8 @@ def _old_wall(name: str, recs: list[dict], dirs: list[Path]) -> float | None:
             v = sum((_json(d / "block.json").get("seconds") or {}).values()) or None
         elif name == "render_db":
             v = s.get("seconds")
-        elif name == "localize":
-            v = s.get("wall_s")
+        elif name == "localize":  # with the database features, as the new records count it
+            v = _json(d / "status.json").get("total_s") or s.get("wall_s")
         elif name == "model":
             v = sum((s.get("seconds") or {}).values()) or None
         else:
