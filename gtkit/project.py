@@ -242,7 +242,9 @@ def disk_bytes(*paths: Path) -> int:
 class StageClock:
     """Wall and CPU seconds (this process + its reaped children) from now, peak RSS of this process
     from now (VmHWM, reset at start; stages nested in one process fold their peaks into the outer
-    clock), the largest reaped child's peak RSS if a child finished meanwhile, load averages."""
+    clock), the largest reaped child's peak RSS if a child finished meanwhile (Linux counts a
+    child's pages from before its exec: a lower bound of it is the parent's RSS at the fork), and
+    the 1-minute load average at start and end (wall seconds at a high load are upper bounds)."""
 
     def __init__(self):
         _fold_peaks()
