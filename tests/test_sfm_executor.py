@@ -58,3 +58,17 @@ def test_features_and_matching_on_a_dask_cluster_give_the_local_database_and_pos
     diff = max(float(np.linalg.norm(pa[n].center - pb[n].center)) for n in pa)
     print(f"dask vs in-process: {len(a['matches'])} matched pairs identical, max camera-centre difference {diff:.2e} m")
     assert diff < 1e-5
+
+
+def test_an_unknown_mapper_is_one_clear_error_before_any_work(tiny_sample, tmp_path):
+    from gtkit.errors import GtkitError
+    from gtkit.project import Project
+
+    root = tmp_path / "site"
+    shutil.copytree(tiny_sample[0], root, ignore=shutil.ignore_patterns("work", "exports", "reports", "model", "queries"))
+    proj = Project.load(root)
+    proj.config.setdefault("sfm", {})["mapper"] = "glomap"
+    proj.save()
+    with pytest.raises(GtkitError, match="unknown sfm.mapper 'glomap' \\(choose from incremental, global, auto\\)"):
+        run_reference(root)
+    assert not (root / "work/sfm_reference/database.db").exists()
