@@ -384,13 +384,13 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
             raise
     t_feat, c_feat = _step(label, f"features of {len(names)} photos", t0), cpu_seconds()
     if not reuse:
-        pairs, pairs_used = block_pairs(
-            names, look, lambda: read_descriptors(db), kind=kind, exhaustive_max=m.exhaustive_max_images,
-            exhaustive_max_without_gps=m.exhaustive_max_without_gps, spatial_k=m.spatial_neighbors,
-            spatial_max_m=m.spatial_max_distance_m, retrieval_k=m.retrieval_neighbors,
-            retrieval_always=m.retrieval_always, sequential_overlap=m.sequential_overlap if kind == "sequence" else 0)
-        n_pairs = len(pairs)
         try:
+            pairs, pairs_used = block_pairs(
+                names, look, lambda: read_descriptors(db), kind=kind, exhaustive_max=m.exhaustive_max_images,
+                exhaustive_max_without_gps=m.exhaustive_max_without_gps, spatial_k=m.spatial_neighbors,
+                spatial_max_m=m.spatial_max_distance_m, retrieval_k=m.retrieval_neighbors,
+                retrieval_always=m.retrieval_always, sequential_overlap=m.sequential_overlap if kind == "sequence" else 0)
+            n_pairs = len(pairs)
             bar = progress_bar(len(pairs), f"{label}: pairs matched ({'+'.join(pairs_used)})")
             match_pairs(db, pairs, m, out, progress=bar.update, executor=ex)
             bar.close()
@@ -417,6 +417,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                                      "gps_priors_in_ba": policy["gps_priors_in_ba"],
                                      "fixed_cameras": sorted(policy["constant_cameras"]),
                                      "self_calibrated_cameras": sorted(policy["self_calibrate"])}}
+    summary["mapper"] = choose_mapper(settings.mapper, len(names))
     if not models:
         diag = image_diagnostics(db)
         summary.update(n_registered=0, n_models=0, models=[], unregistered={
