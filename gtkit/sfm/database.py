@@ -151,7 +151,7 @@ def _extract_chunk(task: tuple) -> list[tuple[str, np.ndarray, np.ndarray]]:
         db_path = Path(tmp) / "chunk.db"
         ro = pycolmap.ImageReaderOptions()
         ro.camera_model = "SIMPLE_RADIAL"
-        pycolmap.extract_features(db_path, image_root, image_names=list(names), camera_mode=pycolmap.CameraMode.SINGLE,
+        pycolmap.extract_features(db_path, image_root, image_names=list(names), camera_mode=pycolmap.CameraMode.AUTO,
                                   reader_options=ro, extraction_options=_extraction_options(FeatureSettings(**fs)),
                                   device=pycolmap.Device.cpu)
         with pycolmap.Database.open(db_path) as db:
