@@ -284,6 +284,13 @@ def _fold_peaks() -> None:
         c.peak = max(c.peak, peak)
 
 
+def reset_peak_rss() -> None:
+    """Start a new peak-memory window for a step inside a stage (Linux: VmHWM reset); every running
+    stage clock keeps the peak so far. Use this, never a bare clear_refs write."""
+    _fold_peaks()
+    _reset_peak_rss()
+
+
 def start_stage_clock(stage_dir: Path) -> StageClock:
     """Start (or restart) measuring the stage that writes ``stage_dir``; read by :func:`mark_stage_done`."""
     clock = StageClock()

@@ -54,3 +54,18 @@ def test_the_peak_of_a_nested_stage_is_its_own_and_the_outer_keeps_the_larger(tm
     if c_in["peak_rss_scope"] == "stage":            # Linux: VmHWM can be reset
         assert c_out["peak_rss_gb"] >= 0.49
         assert c_in["peak_rss_gb"] < c_out["peak_rss_gb"] - 0.3
+
+
+def test_a_step_window_inside_a_stage_does_not_lose_the_stage_peak(tmp_path):
+    from gtkit.project import reset_peak_rss
+
+    (tmp_path / "project.toml").write_text("[crs]\ncrs = 'EPSG:32650'\n")
+    stage = tmp_path / "work" / "steps"
+    assert not stage_done(stage, {})
+    big = np.ones(400 * 2**20 // 8)
+    del big
+    reset_peak_rss()                                  # a step ends (the model build does this per step)
+    stage.mkdir(parents=True)
+    mark_stage_done(stage, {})
+    cost = json.loads((stage / "stage.json").read_text())["summary"]["cost"]
+    assert cost["peak_rss_gb"] >= 0.39

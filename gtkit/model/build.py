@@ -25,8 +25,8 @@ import numpy as np
 
 from ..errors import GtkitError
 from ..io.mesh import Mesh, write_obj, write_offset_sidecar
-from ..project import (Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done,
-                       start_stage_clock)
+from ..project import (Project, file_fingerprint, mark_stage_done, reset_peak_rss, settings_dict, settings_key,
+                       stage_done, start_stage_clock)
 from . import depth as D
 from . import fusion, surface, texture
 from .settings import ModelSettings
@@ -52,11 +52,8 @@ def _peak_gb() -> float:
 
 def _reset_peak() -> None:
     """Start a new peak-memory window (Linux: writing 5 to clear_refs resets VmHWM; elsewhere the
-    peaks are cumulative)."""
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-    except OSError:
-        pass
+    peaks are cumulative). The stage's own clock (its record's ``cost``) keeps the peak so far."""
+    reset_peak_rss()
 
 
 def _cpu_s() -> float:
