@@ -154,8 +154,10 @@ MAPPERS = ("incremental", "global", "auto")
 # ``mapper = "auto"`` uses GLOMAP from this many photos up; None: never. Measured (README, "Scale"),
 # same feature database per seed, small preset (120 photos), seeds 1 and 2: both registered 120/120;
 # mapping CPU 104 / 103 s global vs 54 / 68 s incremental; camera centres vs truth median 0.020 /
-# 0.020 m global vs 0.022 / 0.026 m incremental, worst 0.098 / 0.055 vs 0.051 / 0.067 m. Slower at
-# this size, accuracy a tie; medium / large not measured to the end: auto = incremental until shown.
+# 0.020 m global vs 0.022 / 0.026 m incremental, worst 0.098 / 0.055 vs 0.051 / 0.067 m. Medium
+# (650 photos, seed 5): global 903 CPU s of mapping, 0.041 / 0.433 m (median / worst); incremental
+# 0.051 / 0.169 m in at most 878 CPU s (439 s wall idle, 2 threads). Never cheaper, worst camera
+# worse at size: auto = incremental until global is measured to win (large not measured).
 GLOBAL_MAPPER_MIN_PHOTOS: int | None = None
 
 
