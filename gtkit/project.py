@@ -21,6 +21,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import resource
 import time
 import tomllib
 from pathlib import Path
@@ -154,25 +156,147 @@ def stage_done(stage_dir: Path, settings: Any, inputs: dict | None = None) -> bo
     resumes; a record written before that (absolute paths) still counts where it was made."""
     rec = Path(stage_dir) / STAGE_RECORD
     if not rec.is_file():
+        start_stage_clock(stage_dir)
         return False
     try:
         data = json.loads(rec.read_text())
     except json.JSONDecodeError:
+        start_stage_clock(stage_dir)
         return False
     root = find_root(stage_dir)
     raw = {"settings": settings_dict(settings), "inputs": inputs or {}}
-    return data.get("key") in (settings_key(relative_paths(raw, root)), settings_key(raw))
+    if data.get("key") in (settings_key(relative_paths(raw, root)), settings_key(raw)):
+        return True
+    start_stage_clock(stage_dir)
+    return False
 
 
-def mark_stage_done(stage_dir: Path, settings: Any, inputs: dict | None = None, **summary) -> None:
+def mark_stage_done(stage_dir: Path, settings: Any, inputs: dict | None = None, *,
+                    outputs: list[Path] | None = None, **summary) -> None:
     """Write the record that makes a later run with the same settings skip this stage.
     Call it last, after every output is written. Paths inside the project are stored relative to
-    its root (see :func:`relative_paths`)."""
+    its root (see :func:`relative_paths`). When the stage's clock runs (started by
+    :func:`stage_done` finding no matching record, or by :func:`start_stage_clock`) the summary
+    gets ``cost``: wall and CPU seconds, peak memory, disk of ``stage_dir`` + ``outputs``."""
+    clock = _CLOCKS.pop(_clock_key(stage_dir), None)
+    if clock is not None and "cost" not in summary:
+        summary["cost"] = clock.cost([Path(stage_dir), *(outputs or [])])
     root = find_root(stage_dir)
     rec = relative_paths({"settings": settings_dict(settings), "inputs": inputs or {}}, root)
     write_json(Path(stage_dir) / STAGE_RECORD, {
         "key": settings_key(rec), **rec,
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S"), "summary": relative_paths(summary, root)})
+
+
+# --- what a stage cost: wall, CPU, peak memory, disk ------------------------------------------
+
+def cpu_seconds() -> float:
+    """CPU seconds of this process and its reaped children so far (user + system)."""
+    return sum(_cpu_seconds())
+
+
+def _cpu_seconds() -> tuple[float, float]:
+    me, ch = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime, ch.ru_utime + ch.ru_stime
+
+
+def _peak_rss_bytes() -> int | None:
+    """This process's peak resident set (VmHWM) since start or since the last reset."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def _reset_peak_rss() -> bool:
+    """Reset VmHWM to the current RSS (Linux: ``5`` into /proc/self/clear_refs)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def disk_bytes(*paths: Path) -> int:
+    """Bytes of the files under ``paths`` (apparent size, links not followed)."""
+    total = 0
+    for p in map(Path, paths):
+        if p.is_file() and not p.is_symlink():
+            total += p.stat().st_size
+        elif p.is_dir():
+            for dirpath, _dirs, files in os.walk(p):
+                for f in files:
+                    try:
+                        st = os.lstat(os.path.join(dirpath, f))
+                    except OSError:
+                        continue
+                    total += st.st_size
+    return total
+
+
+class StageClock:
+    """Wall and CPU seconds (this process + its reaped children) from now, peak RSS of this process
+    from now (VmHWM, reset at start; stages nested in one process fold their peaks into the outer
+    clock), the largest reaped child's peak RSS if a child finished meanwhile (Linux counts a
+    child's pages from before its exec: a lower bound of it is the parent's RSS at the fork), and
+    the 1-minute load average at start and end (wall seconds at a high load are upper bounds)."""
+
+    def __init__(self):
+        _fold_peaks()
+        self.t0 = time.time()
+        self.cpu0 = _cpu_seconds()
+        self.child_peak0 = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+        self.load0 = os.getloadavg()[0]
+        self.peak = 0
+        self.scope = "stage" if _reset_peak_rss() else "process"
+
+    def cost(self, outputs: list[Path]) -> dict:
+        _fold_peaks()
+        self.peak = max(self.peak, _peak_rss_bytes() or 0)
+        me, ch = _cpu_seconds()
+        child_peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss  # kB on Linux
+        cpu_me, cpu_ch = me - self.cpu0[0], ch - self.cpu0[1]
+        return {"wall_s": round(time.time() - self.t0, 2), "cpu_s": round(cpu_me + cpu_ch, 2),
+                "cpu_children_s": round(cpu_ch, 2), "peak_rss_gb": round(self.peak / 2**30, 3),
+                "peak_rss_scope": self.scope,
+                "children_peak_rss_gb": round(child_peak / 2**20, 3)
+                if cpu_ch > 0 and child_peak > self.child_peak0 else None,
+                "disk_mb": round(disk_bytes(*outputs) / 2**20, 2),
+                "load_avg_1m": [round(self.load0, 2), round(os.getloadavg()[0], 2)]}
+
+
+_CLOCKS: dict[str, StageClock] = {}
+
+
+def _clock_key(stage_dir: Path) -> str:
+    return str(Path(stage_dir).absolute())
+
+
+def _fold_peaks() -> None:
+    """Every running clock takes the peak so far, before a reset would lose it."""
+    peak = _peak_rss_bytes() or 0
+    for c in _CLOCKS.values():
+        c.peak = max(c.peak, peak)
+
+
+def reset_peak_rss() -> None:
+    """Start a new peak-memory window for a step inside a stage (Linux: VmHWM reset); every running
+    stage clock keeps the peak so far. Use this, never a bare clear_refs write."""
+    _fold_peaks()
+    _reset_peak_rss()
+
+
+def start_stage_clock(stage_dir: Path) -> StageClock:
+    """Start (or restart) measuring the stage that writes ``stage_dir``; read by :func:`mark_stage_done`."""
+    clock = StageClock()
+    _CLOCKS[_clock_key(stage_dir)] = clock
+    _fold_peaks()
+    return clock
 
 
 # --- portable projects: paths inside the project are stored relative to its root ---------------

@@ -21,6 +21,13 @@ def register(sub):
     p.add_argument("--checkpoints", default=None, metavar="NAMES",
                    help="comma-separated GCP names used only as check points")
     p.add_argument("--georegister-with", choices=["gps", "gcp", "gps+gcp"], default=None)
+    p.add_argument("--mapper", choices=["incremental", "global", "auto"], default=None,
+                   help="incremental (COLMAP), global (GLOMAP) or auto (default: by block size, see sfm.blocks)")
+    p.add_argument("--executor", choices=("serial", "local", "dask"), default=None,
+                   help="run feature extraction and matching as tasks there (default: in this process)")
+    p.add_argument("--workers", type=int, default=0, help="worker processes for --executor (0 = min(2, CPUs))")
+    p.add_argument("--dask-address", "--address", dest="dask_address", default=None,
+                   help="existing Dask scheduler for --executor dask (default: a LocalCluster)")
     p.add_argument("--force", action="store_true", help="recompute even if a finished run matches")
     p.set_defaults(func=run)
 
@@ -56,11 +63,20 @@ def run(args):
         "refine_intrinsics": args.refine_intrinsics, "matching.exhaustive_max_images": args.exhaustive_max,
         "georegister.gps_inlier_m": args.gps_inlier_m, "georegister.gcp_accuracy_m": args.gcp_accuracy,
         "georegister.checkpoints": args.checkpoints.split(",") if args.checkpoints else None,
-        "georegister.use": args.georegister_with})
+        "georegister.use": args.georegister_with, "mapper": args.mapper})
+    ex = None
+    if args.executor:
+        from ..localize.executors import ExecutorSettings
+
+        ex = ExecutorSettings(args.executor, args.workers, args.dask_address)
+    elif args.dask_address:
+        from ..errors import GtkitError
+
+        raise GtkitError("--dask-address needs --executor dask")
     if args.block == "reference":
-        _print_reference(run_reference(project, s, force=args.force))
+        _print_reference(run_reference(project, s, force=args.force, executor=ex))
     else:
-        res = run_queries(project, s, force=args.force)
+        res = run_queries(project, s, force=args.force, executor=ex)
         bad = 0
         for seq, r in res.items():
             if "error" in r:

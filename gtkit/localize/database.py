@@ -35,7 +35,7 @@ from ..camera import Camera
 from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json
 from ..io.poses import write_intrinsics, write_poses
-from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done
+from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done, start_stage_clock
 from .executors import ExecutorSettings, iter_map, make_executor
 from .grid import View, ground_level, make_views
 
@@ -259,6 +259,7 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
     if not force and stage_done(out, settings, inputs):
         log.info("render-db: up to date (%s)", out)
         return out
+    start_stage_clock(out)
     sd = view_record(settings_dict(settings), inputs)
     sfile = out / "settings.json"
     if sfile.is_file() and view_record(**json.loads(sfile.read_text())) != sd:

@@ -51,7 +51,7 @@ from ..io.atomic import atomic_path, write_json, write_text
 from ..io.poses import read_intrinsics, write_covariances, write_poses
 from ..pose import Pose
 from ..project import (Project, file_fingerprint, mark_stage_done, relative_paths, settings_dict, settings_key,
-                       stage_done)
+                       stage_done, start_stage_clock)
 from .database import PAPER_PITCHES, Database, load_database
 from .executors import ExecutorSettings, iter_map, make_executor, run_map
 from .pnp import PnPSettings
@@ -554,6 +554,7 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
     if not force and stage_done(out, settings, inputs):
         log.info("localize: up to date (%s)", out)
         return out
+    start_stage_clock(out)
     if not project.paths.cameras.is_file():
         raise GtkitError("intrinsics of the query photos missing (name MODEL W H params... per line)",
                          project.paths.cameras)
@@ -587,6 +588,8 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
         "ablation": ablation, "settings": settings_dict(settings), "n_queries": len(names), "n_localized": n_ok,
         "database_views": len(db.views), "offline": offline, "wall_s": wall, "total_s": time.perf_counter() - t_all,
         "executor": asdict(executor), "queries": results}, project.paths.root))
-    mark_stage_done(out, settings, inputs, n_queries=len(names), n_localized=n_ok, wall_s=round(wall, 2))
+    mark_stage_done(out, settings, inputs, outputs=[Path(offline["cache"])], n_queries=len(names), n_localized=n_ok,
+                    wall_s=round(wall, 2), db_features_s=round(offline["db_features_s"], 2),
+                    db_features_views=offline["db_features_views"], db_global_s=round(offline["db_global_s"], 2))
     log.info("localize (%s): %d of %d queries localized in %.1f s", ablation, n_ok, len(names), wall)
     return out

@@ -25,7 +25,8 @@ import numpy as np
 
 from ..errors import GtkitError
 from ..io.mesh import Mesh, write_obj, write_offset_sidecar
-from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done
+from ..project import (Project, file_fingerprint, mark_stage_done, reset_peak_rss, settings_dict, settings_key,
+                       stage_done, start_stage_clock)
 from . import depth as D
 from . import fusion, surface, texture
 from .settings import ModelSettings
@@ -51,11 +52,8 @@ def _peak_gb() -> float:
 
 def _reset_peak() -> None:
     """Start a new peak-memory window (Linux: writing 5 to clear_refs resets VmHWM; elsewhere the
-    peaks are cumulative)."""
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-    except OSError:
-        pass
+    peaks are cumulative). The stage's own clock (its record's ``cost``) keeps the peak so far."""
+    reset_peak_rss()
 
 
 def _cpu_s() -> float:
@@ -222,6 +220,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
         import json
 
         return json.loads((work / "stage.json").read_text())["summary"]
+    start_stage_clock(work)
     if len(views) < 3:
         raise GtkitError(f"only {len(views)} usable registered photos in the reference block", block)
     t = {"start": time.time()}
@@ -311,5 +310,6 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
                "surface_tiles": n_tiles, "unseen_faces": int((best < 0).sum()), "seam_colour_diff": seam_diff, "seconds": seconds,
                "cpu_seconds": cpu_s, "peak_memory_gb": {k: round(v, 2) for k, v in mem.items()},
                "peak_memory_gb_max": round(max(mem.values()), 2)}
-    mark_stage_done(work, settings, inputs, **summary)
+    outputs = [f for f in P.model.iterdir() if f.name != "delivered"]  # not the delivered model kept aside
+    mark_stage_done(work, settings, inputs, outputs=outputs, **summary)
     return summary

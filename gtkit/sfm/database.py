@@ -5,6 +5,7 @@ names the tie-point and pose files use.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,18 +48,30 @@ class CameraGroup:
     positions: dict[str, np.ndarray] = field(default_factory=dict)  # local-frame pairing positions
 
 
-def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], settings: FeatureSettings,
-                   prior_sigma_m: float = 5.0, progress=None, accuracy: dict[str, float] | None = None) -> dict[str, int]:
-    """Create ``db_path`` fresh: one camera per group, SIFT features, CARTESIAN pose priors.
-    ``progress(n)`` is called as each chunk of photos is extracted; ``accuracy``: {name: metres}, a
-    photo's stated position accuracy (its prior's sigma; default ``prior_sigma_m``).
-    Returns {image name: image_id}."""
-    db_path = Path(db_path)
-    db_path.unlink(missing_ok=True)
+def _extraction_options(settings: FeatureSettings) -> pycolmap.FeatureExtractionOptions:
     ext = pycolmap.FeatureExtractionOptions()
     ext.max_image_size = settings.max_image_size
     ext.sift.max_num_features = settings.max_num_features
     ext.num_threads = settings.num_threads
+    return ext
+
+
+def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], settings: FeatureSettings,
+                   prior_sigma_m: float = 5.0, progress=None, accuracy: dict[str, float] | None = None,
+                   executor=None) -> dict[str, int]:
+    """Create ``db_path`` fresh: one camera per group, SIFT features, CARTESIAN pose priors.
+    ``progress(n)`` is called as each chunk of photos is extracted; ``accuracy``: {name: metres}, a
+    photo's stated position accuracy (its prior's sigma; default ``prior_sigma_m``).
+    Images are imported first (cameras, ids in name order, EXIF priors). ``executor``
+    (:mod:`gtkit.localize.executors`): None extracts here, in this process; else each chunk's SIFT
+    runs as a task on the executor (:func:`_extract_chunk`), written here: the same database.
+    Returns {image name: image_id}."""
+    db_path = Path(db_path)
+    db_path.unlink(missing_ok=True)
+    with pycolmap.Database.open(db_path):  # created empty: import_images needs it to exist
+        pass
+    ext = _extraction_options(settings)
+    tasks = []
     for g in groups:
         ro = pycolmap.ImageReaderOptions()
         if g.camera is not None:
@@ -74,11 +87,31 @@ def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], s
                 with pycolmap.Database.open(db_path) as db:
                     first = next(im for im in db.read_all_images() if im.name == g.names[0])
                 ro.existing_camera_id = first.camera_id
+            # images imported first, in name order: ids do not depend on which extraction thread
+            # finishes first (extract_features alone numbers them as they complete)
+            pycolmap.import_images(db_path, image_root, camera_mode=pycolmap.CameraMode.SINGLE,
+                                   image_names=chunk, options=ro)
+            if executor is not None:
+                tasks.append((str(image_root), chunk, dataclasses.asdict(settings)))
+                continue
             pycolmap.extract_features(db_path, image_root, image_names=chunk,
                                       camera_mode=pycolmap.CameraMode.SINGLE, reader_options=ro,
                                       extraction_options=ext, device=pycolmap.Device.cpu)
             if progress:
                 progress(len(chunk))
+    if tasks:
+        from ..localize.executors import iter_map
+
+        with pycolmap.Database.open(db_path) as db:
+            by_name = {im.name: im.image_id for im in db.read_all_images()}
+        for res in iter_map(executor, _extract_chunk, tasks):
+            with pycolmap.Database.open(db_path) as db:
+                for name, kp, desc in res:
+                    db.write_keypoints(by_name[name], kp)
+                    db.write_descriptors(by_name[name], pycolmap.FeatureDescriptors(
+                        pycolmap.FeatureExtractorType.SIFT, desc))
+            if progress:
+                progress(len(res))
     ids = {}
     with pycolmap.Database.open(db_path) as db:
         by_name = {im.name: im for im in db.read_all_images()}
@@ -105,7 +138,26 @@ def build_database(db_path: Path, image_root: Path, groups: list[CameraGroup], s
     return ids
 
 
-EXTRACT_CHUNK = 8  # photos per extraction call (progress granularity)
+EXTRACT_CHUNK = 8  # photos per extraction call (progress granularity; one executor task)
+
+
+def _extract_chunk(task: tuple) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """An executor task: SIFT of a chunk of photos, as ``extract_features`` computes it (into a
+    scratch database here; features do not depend on the camera). [(name, keypoints, descriptors)]."""
+    import tempfile
+
+    image_root, names, fs = task
+    with tempfile.TemporaryDirectory(prefix="gtkit-sift-") as tmp:
+        db_path = Path(tmp) / "chunk.db"
+        ro = pycolmap.ImageReaderOptions()
+        ro.camera_model = "SIMPLE_RADIAL"
+        pycolmap.extract_features(db_path, image_root, image_names=list(names), camera_mode=pycolmap.CameraMode.AUTO,
+                                  reader_options=ro, extraction_options=_extraction_options(FeatureSettings(**fs)),
+                                  device=pycolmap.Device.cpu)
+        with pycolmap.Database.open(db_path) as db:
+            by_name = {im.name: im.image_id for im in db.read_all_images()}
+            return [(n, np.asarray(db.read_keypoints(by_name[n])), np.asarray(db.read_descriptors(by_name[n]).data))
+                    for n in names]
 
 
 def read_descriptors(db_path: Path) -> dict[str, np.ndarray]:
@@ -114,13 +166,23 @@ def read_descriptors(db_path: Path) -> dict[str, np.ndarray]:
         return {im.name: np.asarray(db.read_descriptors(im.image_id).data) for im in db.read_all_images()}
 
 
-def match_pairs(db_path: Path, pairs: list[tuple[str, str]], settings: MatchSettings, work_dir: Path,
-                progress=None) -> None:
-    """Match and verify the given name pairs, in chunks (``progress(n)`` after each)."""
+def _matching_options(settings: MatchSettings) -> tuple:
     mo = pycolmap.FeatureMatchingOptions()
     mo.num_threads = settings.num_threads
     vo = pycolmap.TwoViewGeometryOptions()
     vo.min_num_inliers = settings.min_num_inliers
+    vo.ransac.random_seed = 0   # verification repeatable (pycolmap's default -1 draws a new seed each run)
+    return mo, vo
+
+
+def match_pairs(db_path: Path, pairs: list[tuple[str, str]], settings: MatchSettings, work_dir: Path,
+                progress=None, executor=None) -> None:
+    """Match and verify the given name pairs, in chunks (``progress(n)`` after each). ``executor``:
+    None matches here; else each chunk is a task (:func:`_match_chunk`) on the executor, reading
+    the database (read-only) and returning matches + two-view geometries, written here in chunk order."""
+    if executor is not None:
+        return _match_pairs_on(executor, db_path, pairs, settings, progress)
+    mo, vo = _matching_options(settings)
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     pairs_file = work_dir / "pairs_chunk.txt"
@@ -134,6 +196,69 @@ def match_pairs(db_path: Path, pairs: list[tuple[str, str]], settings: MatchSett
         if progress:
             progress(len(chunk))
     pairs_file.unlink(missing_ok=True)
+
+
+def _match_pairs_on(executor, db_path: Path, pairs: list[tuple[str, str]], settings: MatchSettings, progress) -> None:
+    from ..localize.executors import iter_map
+
+    tasks = [(str(db_path), pairs[k:k + settings.chunk_pairs], dataclasses.asdict(settings))
+             for k in range(0, len(pairs), settings.chunk_pairs)]
+    results = []  # written after every task ended: no task reads the database while it is written
+    for k, res in enumerate(iter_map(executor, _match_chunk, tasks)):
+        results.append(res)
+        if progress:
+            progress(len(tasks[k][1]))
+    with pycolmap.Database.open(db_path) as db:
+        for res in results:
+            for id1, id2, matches, tvg in res:
+                if db.exists_matches(id1, id2) or db.exists_two_view_geometry(id1, id2):
+                    continue  # a pair listed twice: the first chunk's result stands, as in match_pairs
+                if matches is not None:
+                    db.write_matches(id1, id2, matches)
+                if tvg is not None:
+                    db.write_two_view_geometry(id1, id2, tvg)
+
+
+def _match_chunk(task: tuple) -> list[tuple]:
+    """An executor task: match and verify a chunk of name pairs as :func:`match_pairs` does, in a
+    scratch database holding the chunk's photos (same ids, cameras, rigs, frames, features).
+    [(id1, id2, matches or None, TwoViewGeometry or None)]."""
+    import tempfile
+
+    db_path, pairs, ms = task
+    settings = MatchSettings(**ms)
+    names = sorted({n for p in pairs for n in p})
+    with tempfile.TemporaryDirectory(prefix="gtkit-match-") as tmp:
+        scratch = Path(tmp) / "chunk.db"
+        with pycolmap.Database.open(db_path) as src, pycolmap.Database.open(scratch) as dst:
+            for r in src.read_all_rigs():
+                dst.write_rig(r, use_rig_id=True)
+            for c in src.read_all_cameras():
+                dst.write_camera(c, use_camera_id=True)
+            for f in src.read_all_frames():
+                dst.write_frame(f, use_frame_id=True)
+            ids = {}
+            for n in names:
+                im = src.read_image_with_name(n)
+                ids[n] = im.image_id
+                dst.write_image(im, use_image_id=True)
+                dst.write_keypoints(im.image_id, src.read_keypoints(im.image_id))
+                dst.write_descriptors(im.image_id, src.read_descriptors(im.image_id))
+        pairs_file = Path(tmp) / "pairs.txt"
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+        mo, vo = _matching_options(settings)
+        po = pycolmap.ImportedPairingOptions()
+        po.match_list_path = pairs_file
+        pycolmap.match_image_pairs(scratch, matching_options=mo, pairing_options=po, verification_options=vo,
+                                   device=pycolmap.Device.cpu)
+        out = []
+        with pycolmap.Database.open(scratch) as db:
+            for a, b in pairs:
+                i, j = ids[a], ids[b]
+                m = np.asarray(db.read_matches(i, j)) if db.exists_matches(i, j) else None
+                g = db.read_two_view_geometry(i, j) if db.exists_two_view_geometry(i, j) else None
+                out.append((i, j, m, g))
+    return out
 
 
 def image_diagnostics(db_path: Path) -> dict[str, dict]:

@@ -31,7 +31,7 @@ from ..io.exif import read_photo_meta
 from ..io.poses import read_covariances, read_poses
 from ..pose import Pose
 from ..project import (Project, file_fingerprint, mark_stage_done, relative_paths, resolve_path, settings_dict,
-                       stage_done)
+                       stage_done, start_stage_clock)
 from .calibrate import query_photos, wide_name_for
 from .raycast import MESSAGES, cast_rays
 from .rig import Rig
@@ -272,6 +272,7 @@ def run(project: Project | str | Path, settings: TrackSettings | None = None, fo
         done = json.loads(summary_path.read_text())
         return {k: str(resolve_path(v, P.root)) if k in ("poses", "pose_covariances", "csv", "geojson") and v else v
                 for k, v in done.items()}
+    start_stage_clock(stage_dir)
     t0 = time.perf_counter()
     recs = locate(dets, poses, covs, rig, dsm, project, s)
     if s.smooth:
