@@ -34,6 +34,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from gtkit.project import disk_bytes  # noqa: E402  (the same measure as the stage records)
 
 # stage -> (record folder(s) under work/, size driver for the exponent)
 STAGES = [
@@ -102,24 +105,6 @@ def run_measured(cmd: list[str], log_path: Path, env: dict | None = None, cwd: P
             "peak_tree_rss_gb": round(peak / 2**30, 2), "killed_over_rss_gb": max_rss_gb if killed else None,
             "load_before": [round(v, 2) for v in load0], "load_after": [round(v, 2) for v in os.getloadavg()],
             "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
-
-
-def disk_bytes(*paths: Path) -> int:
-    """Bytes of the files under ``paths`` (apparent size; links not followed)."""
-    total = 0
-    for p in paths:
-        p = Path(p)
-        if p.is_file():
-            total += p.stat().st_size
-        elif p.is_dir():
-            for dirpath, _dirs, files in os.walk(p):
-                for f in files:
-                    try:
-                        st = os.lstat(os.path.join(dirpath, f))
-                    except OSError:
-                        continue
-                    total += st.st_size
-    return total
 
 
 def create_and_run(preset: str, seed: int, work: Path, code: Path, stop_after: str | None,
