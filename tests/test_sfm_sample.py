@@ -35,7 +35,9 @@ def test_small_sample_meets_targets(small):
     root, out = small
     rep = json.loads((root / "reports" / "gt_report.json").read_text())
     assert rep["n_registered"] == rep["n_images"] > 0
-    assert rep["median_pos_err_m"] <= 0.10 and rep["median_rot_err_deg"] <= 0.10, rep
+    # seed 0 in CI at 9e401e9: 0.036 m / 0.015 deg (before the held reference and 2D-3D ties: 0.047 m);
+    # seeds 1-5: median 0.048 m, worst 0.056 m (README "Figures over seeds")
+    assert rep["median_pos_err_m"] <= 0.06 and rep["median_rot_err_deg"] <= 0.05, rep
     assert rep["median_reproj_px"] <= 1.0
     geo = rep["reference_block"]["georegistration"]
     assert geo["gcp_median_err_m"] is not None and geo["gcp_median_err_m"] < 0.10
