@@ -19,7 +19,7 @@ from gtkit.pose import Pose
 from gtkit.project import Project
 from gtkit.evaluate import gt_report as report  # the report with its checks (gtkit report)
 from gtkit.sfm import register
-from gtkit.sfm.geometry import RegistrationError, robust_sim3, triangulate_clicks
+from gtkit.sfm.geometry import RegistrationError, robust_sim3, triangulate_clicks, triangulate_many
 
 CLICK_NOISE = 0.5
 REF_CAM = Camera.pinhole(1600, 1200, 1400.0)
@@ -245,3 +245,42 @@ def test_triangulation_drops_a_bad_click():
     tri = triangulate_clicks([REF_CAM] * 4, poses, uv, max_px=3.0)
     assert tri.used.tolist() == [True, True, False, True]
     assert np.linalg.norm(tri.xyz - X) < 0.3
+
+
+def _looking_at(target, C):
+    z = (target - C) / np.linalg.norm(target - C)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    return Pose.from_center(np.array([x, np.cross(z, x), z]), C)
+
+
+def test_triangulating_many_points_at_once_gives_what_one_at_a_time_gives():
+    """The vectorised path (all the joint BA's tie points at once) returns, point by point, what
+    triangulate_clicks returns: same position (1e-6 m), same clicks used, same failures."""
+    rng = np.random.default_rng(7)
+    cams = [Camera("OPENCV", 640, 480, (500.0, 505.0, 321.0, 238.0, -0.08, 0.02, 1e-3, -5e-4)), REF_CAM]
+    tracks = []
+    for k in range(60):
+        X = rng.uniform([-40, -40, 0], [40, 40, 25])
+        n = 2 + k % 4
+        poses = [_looking_at(X + rng.uniform(-3, 3, 3), X + rng.uniform([-60, -60, 80], [60, 60, 120])) for _ in range(n)]
+        cs = [cams[rng.integers(2)] for _ in range(n)]
+        uv = np.array([c.project(p.transform(X[None]))[0][0] for c, p in zip(cs, poses)]) + rng.normal(0, 0.7, (n, 2))
+        if k % 5 == 0:
+            uv[k % n] += [40, -30]                      # a wrong click: the one-at-a-time path drops it
+        if k % 17 == 0:
+            poses = [Pose.from_dji(0, -90, 0, X + [dx, 0, 100]) for dx in np.linspace(0, 0.5, n)]  # parallel rays
+            uv = np.array([REF_CAM.project(p.transform(X[None]))[0][0] for p in poses])
+            cs = [REF_CAM] * n
+        tracks.append((cs, poses, uv))
+    many = triangulate_many(tracks, max_px=3.0, min_angle_deg=1.0)
+    n_ok = n_dropped = 0
+    for tr, m in zip(tracks, many):
+        one = triangulate_clicks(*tr, max_px=3.0, min_angle_deg=1.0)
+        assert (one.xyz is None) == (m.xyz is None) and one.used.tolist() == m.used.tolist()
+        if one.xyz is not None:
+            assert np.linalg.norm(one.xyz - m.xyz) < 1e-6
+            np.testing.assert_allclose(one.residuals_px, m.residuals_px, atol=1e-4)
+            n_ok += 1
+            n_dropped += int((~one.used).sum())
+    assert n_ok >= 45 and n_dropped >= 8

@@ -43,7 +43,8 @@ from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
 from .crossmatch import AUTO_PREFIX, CrossMatchSettings, cross_matches
 from .resect import resect_sequence
-from .geometry import RegistrationError, model_cameras, model_poses, robust_sim3, triangulate_clicks
+from .geometry import (RegistrationError, model_cameras, model_poses, robust_sim3, triangulate_clicks,
+                       triangulate_many)
 
 log = logging.getLogger(__name__)
 STAGE = "register"
@@ -291,13 +292,13 @@ def retriangulate_ties(j: Joint, settings: RegisterSettings) -> tuple[dict, dict
     (ties to use: id -> (xyz, images), dropped clicks: id -> [{image, residual_px}])."""
     poses, cams = j.poses_cams()
     use, dropped = {}, {}
+    todo = {}
     for tid, obs in j.clicks.items():
         names = [n for n in obs if n in poses]
-        if len(names) < 2 or not any(n.startswith("queries/") for n in names):
-            continue
-        uv = np.array([obs[n] for n in names])
-        tri = triangulate_clicks([cams[n] for n in names], [poses[n] for n in names], uv,
-                                 max_px=_max_px(tid, settings), min_angle_deg=0.5)
+        if len(names) >= 2 and any(n.startswith("queries/") for n in names):
+            todo[tid] = names
+    for tid, tri in zip(todo, _triangulate_ties(j, todo, poses, cams, settings)):
+        names = todo[tid]
         bad = [{"image": n, "residual_px": float(r)} for n, u, r in zip(names, tri.used, tri.residuals_px) if not u]
         if tri.xyz is None:
             dropped[tid] = [{"image": n, "residual_px": float(r)} for n, r in zip(names, tri.residuals_px)]
@@ -310,19 +311,32 @@ def retriangulate_ties(j: Joint, settings: RegisterSettings) -> tuple[dict, dict
     return use, dropped
 
 
+def _triangulate_ties(j: Joint, todo: dict[str, list[str]], poses, cams, settings: RegisterSettings) -> list:
+    """Each tie of ``todo`` (id -> its images) from its clicks in those images, automatic ties and
+    clicked ties with their own pixel limits, many points at once (geometry.triangulate_many)."""
+    out = {}
+    for auto in (True, False):
+        ids = [t for t in todo if t.startswith(AUTO_PREFIX) == auto]
+        tracks = [([cams[n] for n in todo[t]], [poses[n] for n in todo[t]], np.array([j.clicks[t][n] for n in todo[t]]))
+                  for t in ids]
+        max_px = settings.ba_max_auto_px if auto else settings.ba_max_tie_px
+        out.update(zip(ids, triangulate_many(tracks, max_px=max_px, min_angle_deg=0.5)))
+    return [out[t] for t in todo]
+
+
 def _placed_by_reference(j: Joint, ties: dict[str, dict], settings: RegisterSettings) -> dict:
     """Tie points triangulated from their reference observations alone: id -> (xyz, all its joint images)."""
     poses, cams = j.poses_cams()
-    out = {}
+    todo, queries = {}, {}
     for tid, obs in ties.items():
         refs = [n for n in obs if n.startswith("reference/") and n in poses]
-        queries = [n for n in obs if n.startswith("queries/") and n in poses]
-        if len(refs) < 2 or not queries:
-            continue
-        tri = triangulate_clicks([cams[n] for n in refs], [poses[n] for n in refs], np.array([obs[n] for n in refs]),
-                                 max_px=_max_px(tid, settings), min_angle_deg=0.5)
+        queries[tid] = [n for n in obs if n.startswith("queries/") and n in poses]
+        if len(refs) >= 2 and queries[tid]:
+            todo[tid] = refs
+    out = {}
+    for tid, tri in zip(todo, _triangulate_ties(j, todo, poses, cams, settings)):
         if tri.xyz is not None:
-            out[tid] = (tri.xyz, [n for n, u in zip(refs, tri.used) if u] + queries)
+            out[tid] = (tri.xyz, [n for n, u in zip(todo[tid], tri.used) if u] + queries[tid])
     return out
 
 
