@@ -25,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
 
-from gtkit.project import Project  # noqa: E402
+from gtkit.project import Project, StageClock  # noqa: E402
 
 
 def _row(name, m):
@@ -72,15 +72,26 @@ def main(argv=None):
     proj = Project.load(root)
     built = root / summary["model"]
     s = dsm.DsmSettings(resolution=a.resolution)
-    d_built = dsm.run(proj, s, input=built, out=root / "exports" / "dsm_built.tif")
+    costs = {}  # each measurement's wall / CPU seconds and its own peak memory (gtkit.project.StageClock)
+
+    def timed(name, fn, *args, **kw):
+        clock = StageClock()
+        out = fn(*args, **kw)
+        c = clock.cost([])
+        costs[name] = {k: c[k] for k in ("wall_s", "cpu_s", "peak_rss_gb", "load_avg_1m")}
+        return out
+
+    d_built = timed("dsm built", dsm.run, proj, s, input=built, out=root / "exports" / "dsm_built.tif")
     rows = []
     if a.delivered:
-        d_del = dsm.run(proj, s, input=Path(a.delivered), out=root / "exports" / "dsm_delivered.tif")
-        rows.append(("built", dsm_vs_truth(root, d_built, area_of=d_del)))
-        rows.append(("delivered", dsm_vs_truth(root, d_del)))
-        diff = compare(proj, built, Path(a.delivered), a.resolution, root / "exports" / "model_diff.tif")
+        d_del = timed("dsm delivered", dsm.run, proj, s, input=Path(a.delivered),
+                      out=root / "exports" / "dsm_delivered.tif")
+        rows.append(("built", timed("truth (built)", dsm_vs_truth, root, d_built, area_of=d_del)))
+        rows.append(("delivered", timed("truth (delivered)", dsm_vs_truth, root, d_del)))
+        diff = timed("compare", compare, proj, built, Path(a.delivered), a.resolution,
+                     root / "exports" / "model_diff.tif")
     else:
-        rows.append(("built", dsm_vs_truth(root, d_built)))
+        rows.append(("built", timed("truth (built)", dsm_vs_truth, root, d_built)))
         diff = None
     print(f"\nmodel build of {root}: {summary['depth_maps']} depth maps of {summary['photos']} photos, "
           f"{summary['points']} fused points, {summary['triangles']} triangles in {summary['parts']} parts "
@@ -89,6 +100,8 @@ def main(argv=None):
           + ("; CPU seconds: " + json.dumps(summary["cpu_seconds"]) if "cpu_seconds" in summary else "")
           + "; peak memory GB in each step: " + json.dumps(summary["peak_memory_gb"]))
     print(f"load average at the end: {os.getloadavg()[0]:.1f} / {os.getloadavg()[1]:.1f} / {os.getloadavg()[2]:.1f} (1/5/15 min)")
+    print("measurement (wall s / CPU s / own peak memory GB / 1-min load at start, end): " + "; ".join(
+        f"{n} {c['wall_s']:.0f} / {c['cpu_s']:.0f} / {c['peak_rss_gb']:.2f} / {c['load_avg_1m']}" for n, c in costs.items()))
     for n, why in summary["skipped"].items():
         print(f"  skipped {n}: {why}")
     print("\n| model | cell m | completeness (grid) | (of delivered area) | median off edges | p95 off edges | "
@@ -106,7 +119,8 @@ def main(argv=None):
         print("overlay median misalignment at the true query poses (px): " + json.dumps(ov))
     out = root / "reports" / "bench_model.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"summary": summary, "dsm": dict(rows), "diff": diff}, indent=1))
+    out.write_text(json.dumps({"summary": summary, "dsm": dict(rows), "diff": diff, "measurement_cost": costs},
+                              indent=1))
 
 
 if __name__ == "__main__":

@@ -338,3 +338,31 @@ def test_grid_snaps_to_whole_cells_in_the_crs():
     assert t.c % 0.5 == 0 and t.f % 0.5 == 0 and g.xmin <= 0.3 and g.xmax >= 10.1 and g.ymin <= 0.2
     assert (nice_resolution(0.0912), nice_resolution(0.21), nice_resolution(0.43), nice_resolution(3.1)) == \
         (0.1, 0.25, 0.5, 5.0)
+
+
+def test_dsm_reads_the_obj_without_its_textures_same_heights(project):
+    """The DSM reads an OBJ as its triangles (gtkit.io.obj_geometry: textures not decoded) and
+    draws it a piece at a time: bounds, detail (texel size from the image headers), grid and every
+    height equal those of the textured model loaded whole (the path before, which held every
+    decoded texture and trimesh's parse: a 5.4 M-triangle model outgrew 8 GB)."""
+    from gtkit.export.dsm import plan_grid
+    from gtkit.export.sources import load_surface
+    from gtkit.export.surface import MeshSurface, ObjMeshSurface, rasterize_surface
+    from gtkit.io.mesh import load_model
+
+    obj = project.paths.model / "reference.obj"
+    light, _ = load_surface(obj, project.frame, textures=False)
+    assert isinstance(light, ObjMeshSurface)
+    light.piece_triangles = 300                        # 1,152 + 40 triangles: 4 pieces
+    whole = MeshSurface(load_model(obj, project.frame))
+    np.testing.assert_array_equal(light.bounds(), whole.bounds())
+    assert light.detail() == pytest.approx(whole.detail(), rel=1e-12)
+    for res in (None, 0.5):
+        plan = plan_grid(light, project.frame, res)
+        assert plan.grid == plan_grid(whole, project.frame, res).grid
+        a = rasterize_surface(light, plan.grid).height
+        b = rasterize_surface(whole, plan.grid).height
+        assert np.isfinite(a).mean() > 0.9
+        np.testing.assert_array_equal(a, b)             # bit for bit, NaN where empty in both
+    with pytest.raises(GtkitError, match="textures"):
+        light.rasterize(plan.grid, with_rgb=True)

@@ -210,3 +210,59 @@ def test_dji_angles_of_real_photos_give_nadir_rotation():
     m = read_photo_meta(PHOTOS[0])
     R = dji_to_rotation(m.gimbal_yaw, m.gimbal_pitch, m.gimbal_roll)
     assert R[2] @ np.array([0, 0, -1.0]) > 0.999  # optical axis points down
+
+
+def _triangles(V, F):
+    """Triangles as sorted rows of their 9 coordinates, corners sorted too (order-free comparison)."""
+    t = np.asarray(V)[np.asarray(F)]                       # (M, 3, 3)
+    t = np.take_along_axis(t, np.lexsort(t.transpose(2, 0, 1)[::-1], axis=-1)[:, :, None], axis=1).reshape(-1, 9)
+    return t[np.lexsort(t.T[::-1])]
+
+
+def test_obj_geometry_reader_agrees_with_trimesh_on_awkward_files(tmp_path):
+    """The heights-only OBJ reader (gtkit.io.obj_geometry) gives trimesh's triangles for the forms
+    OBJ writers use: v/vt, v//vn, bare v, quads and polygons (fans), vertex colours, CRLF, several
+    materials; relative (negative) indices count back from the line, as the OBJ format says
+    (trimesh 5.2 counts them from the end of the file, so they are checked against the same file
+    with absolute indices); bad indices are a one-line error naming the file."""
+    from PIL import Image
+
+    from gtkit.io.obj_geometry import read_obj_geometry
+
+    Image.fromarray(np.zeros((40, 80, 3), np.uint8)).save(tmp_path / "t.png")
+    (tmp_path / "m.mtl").write_text("newmtl a\nKd 1 1 1\nmap_Kd t.png\n\nnewmtl b\nKd 0.5 0.5 0.5\n")
+    lines = ["# a comment", "mtllib m.mtl", "o first"]
+    lines += [f"v {x} {y} {z} 0.5 0.5 0.5" for x, y, z in [(0, 0, 1), (4, 0, 1), (4, 2, 1), (0, 2, 1)]]
+    lines += ["vt 0 0", "vt 1 0", "vt 1 1", "vt 0 1", "vn 0 0 1", "usemtl a", "f 1/1 2/2 3/3", "f 1/1/1 3/3/1 4/4/1"]
+    lines += ["o second", "v 10 0 2", "v 12 0 2", "v 13 1 2", "v 12 2 2", "v 10 2 2", "usemtl b",
+              "f 5//1 6//1 7//1 8//1 9//1", "f 6 8 9"]
+    lines += ["o third", "v 20 0 3", "v 21 0 3", "v 21 1 3", "v 20 1 3", "f 10 11 12 13"]
+    obj = tmp_path / "awkward.obj"
+    obj.write_bytes(("\r\n".join(lines) + "\r\n").encode())
+    g = read_obj_geometry(obj)
+    ref = read_mesh_file(obj)
+    Vr = np.concatenate([p.vertices for p in ref.parts])
+    Fr, n = [], 0
+    for p in ref.parts:
+        Fr.append(p.faces + n)
+        n += len(p.vertices)
+    assert g.n_triangles == 2 + 3 + 1 + 2 == ref.n_triangles
+    np.testing.assert_array_equal(_triangles(g.vertices, g.faces), _triangles(Vr, np.concatenate(Fr)))
+    np.testing.assert_array_equal(g.bounds(), ref.bounds())
+    # texel size from material a only (80 x 40 texels over 4 x 2 m: 0.05 m), material b has no image
+    assert g.texel_size == pytest.approx(0.05)
+    relative = tmp_path / "relative.obj"
+    relative.write_bytes(obj.read_bytes().replace(b"f 5//1 6//1 7//1 8//1 9//1", b"f -5//1 -4//1 -3//1 -2//1 -1//1"))
+    r = read_obj_geometry(relative)
+    np.testing.assert_array_equal(r.faces, g.faces)
+    shifted = read_obj_geometry(obj, shift=(100.0, 200.0, 0.0))
+    np.testing.assert_array_equal(shifted.vertices, g.vertices + np.array([100.0, 200.0, 0.0]))
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n")
+    with pytest.raises(GtkitError, match="bad.obj") as e:
+        read_obj_geometry(bad)
+    assert "does not exist" in str(e.value)
+    empty = tmp_path / "empty.obj"
+    empty.write_text("v 0 0 0\n")
+    with pytest.raises(GtkitError, match="no triangles"):
+        read_obj_geometry(empty)

@@ -163,3 +163,22 @@ def test_windowed_dsm_from_tiles_is_identical_and_bounded(single, tiled):
         np.testing.assert_array_equal(a.rgb, b.rgb)
     ref.release()
     streamer.release()
+
+
+def test_heights_only_dsm_from_tiles_one_tile_at_a_time_is_identical(single, tiled):
+    """The DSM of a tiled model draws its tiles one at a time from their triangles (textures not
+    read, gtkit.export.surface.render_heights_in_pieces): the heights equal the single textured
+    mesh's top-down render bit for bit, and the tiles are read without their texture images."""
+    from gtkit.export.grid import Grid
+    from gtkit.export.surface import TiledSurface, rasterize_surface
+
+    mode, model = tiled
+    ref = Renderer()
+    ref.add_mesh(single, origin=model.bounds().mean(0))
+    a = ref.render_ortho(-100, -100, 100, 100, 0.25, with_rgb=False)
+    ref.release()
+    b = rasterize_surface(TiledSurface(model), Grid(-100.0, 100.0, 0.25, 800, 800)).height
+    assert np.isfinite(a.depth).mean() > 0.5
+    np.testing.assert_array_equal(a.depth, b)
+    tile = model.load_tile(model.names[0], textures=False)
+    assert tile.parts and all(p.texture is None and p.uv is None for p in tile.parts)

@@ -7,7 +7,10 @@ Writing (``gtkit export dsm``)::
     run_file("model.laz", "dsm.tif", DsmSettings())  # a file outside a project (its own CRS)
 
 Meshes and point clouds share one code path: :func:`gtkit.export.surface.rasterize_surface`
-on a :class:`gtkit.export.grid.Grid`, then :func:`gtkit.export.geotiff.write_geotiff`.
+on a :class:`gtkit.export.grid.Grid`, then :func:`gtkit.export.geotiff.write_geotiff`. A DSM
+needs no colours: an OBJ is read as its triangles without decoding its textures and drawn a
+million triangles at a time, a tiled model a tile at a time (the heights are those of the whole
+textured model drawn at once; memory: the OBJ's geometry, or one tile).
 Heights in the file are CRS heights (world z + the project origin's z), exactly as the model
 states them (for DJI/GPS data usually ellipsoidal; gtkit never changes the vertical datum).
 
@@ -34,7 +37,7 @@ from ..project import Project, settings_dict
 from .geotiff import write_geotiff
 from .grid import Grid, nice_resolution
 from .sources import load_surface, run_raster_stage
-from .surface import MeshSurface, PointSurface, SurfaceRaster, rasterize_surface
+from .surface import MeshSurface, ObjMeshSurface, PointSurface, SurfaceRaster, TiledSurface, rasterize_surface
 
 log = logging.getLogger(__name__)
 
@@ -58,8 +61,8 @@ class RasterPlan:
     clamped: bool        # the requested resolution was finer than the detail
 
 
-def plan_grid(source: MeshSurface | PointSurface, frame: GeoFrame, resolution: float | None,
-              default_factor: float = 2.0) -> RasterPlan:
+def plan_grid(source: MeshSurface | ObjMeshSurface | TiledSurface | PointSurface, frame: GeoFrame,
+              resolution: float | None, default_factor: float = 2.0) -> RasterPlan:
     """Choose the grid: a default from the source's detail, never finer than that detail."""
     detail = source.detail()
     b = source.bounds()
@@ -111,14 +114,14 @@ def run(project: Project | str | Path, settings: DsmSettings | None = None, inpu
     settings = settings or DsmSettings()
     proj = project if isinstance(project, Project) else Project.load(project)
     return run_raster_stage(proj, settings, input, crs, offset, out, default_out=proj.paths.dsm, stage=STAGE,
-                            make=make_dsm, label="DSM")
+                            make=make_dsm, label="DSM", textures=False)
 
 
 def run_file(input: str | Path, out: str | Path, settings: DsmSettings | None = None, crs: str | None = None,
              offset=None) -> Path:
     """A DSM of a mesh or point cloud outside any project, in the file's own CRS."""
     settings = settings or DsmSettings()
-    source, frame = load_surface(input, None, crs, offset)
+    source, frame = load_surface(input, None, crs, offset, textures=False)
     make_dsm(source, frame, Path(out), settings, str(input))
     return Path(out)
 

@@ -14,10 +14,11 @@ import numpy as np
 
 from ..errors import GtkitError
 from ..geo import GeoFrame, crs_name, parse_crs
-from ..io.mesh import MESH_SUFFIXES, load_model, read_offset_sidecar, sidecar_path
+from ..io.mesh import MESH_SUFFIXES, load_model, model_shift, read_offset_sidecar, sidecar_path
+from ..io.obj_geometry import read_obj_geometry
 from ..project import Paths, file_fingerprint
 from ..io.pointcloud import POINT_SUFFIXES, is_point_cloud, read_points
-from .surface import MeshSurface, PointSurface, TiledSurface
+from .surface import MeshSurface, ObjMeshSurface, PointSurface, TiledSurface
 
 REFERENCE_MODEL = "reference.obj"
 
@@ -56,11 +57,14 @@ def input_fingerprint_paths(path: Path) -> list[Path]:
 
 
 def load_surface(path: str | Path, frame: GeoFrame | None = None, crs: str | None = None,
-                 offset=None) -> tuple[MeshSurface | PointSurface, GeoFrame]:
+                 offset=None, textures: bool = True) -> tuple[MeshSurface | PointSurface, GeoFrame]:
     """A surface source in the world frame of ``frame``.
 
     Without a frame (a file outside a project) one is made from the file's CRS (or ``crs``)
-    with an origin at the data's minimum corner rounded to whole metres.
+    with an origin at the data's minimum corner rounded to whole metres. ``textures=False``
+    (heights only: the DSM, model compare): an OBJ is read as its triangles
+    (:class:`ObjMeshSurface`; its texture images are not decoded) and a tiled model is drawn a
+    tile's triangles at a time.
     """
     path = Path(path)
     if is_tiled(path) and path.exists():
@@ -87,15 +91,23 @@ def load_surface(path: str | Path, frame: GeoFrame | None = None, crs: str | Non
         elif not parse_crs(use_crs, path).equals(frame.crs):
             raise GtkitError(f"point cloud CRS {use_crs} does not match the project CRS {frame.crs_spec}", path)
         return PointSurface(frame.crs_to_local(cloud.xyz), cloud.rgb), frame
+    geometry_only = not textures and suffix == ".obj"
     if frame is None:
         side = read_offset_sidecar(path)
         use_crs = side[0] if side is not None else crs
         if use_crs is None:
             raise GtkitError("mesh has no georeference: write a .offset.json sidecar or give --crs and --offset", path)
         off = side[1] if side is not None else np.asarray(offset if offset is not None else (0, 0, 0), float)
+        if geometry_only:
+            geom = read_obj_geometry(path, off)
+            frame = GeoFrame(crs_name(parse_crs(use_crs, path)), _origin_of(geom.bounds()), source=str(path))
+            geom.vertices += -np.asarray(frame.origin)
+            return ObjMeshSurface(geom), frame
         raw = load_model(path, None, use_crs, off)
         frame = GeoFrame(crs_name(parse_crs(use_crs, path)), _origin_of(raw.bounds()), source=str(path))
         return MeshSurface(raw.translated(-np.asarray(frame.origin))), frame
+    if geometry_only:
+        return ObjMeshSurface(read_obj_geometry(path, model_shift(path, frame, crs, offset))), frame
     return MeshSurface(load_model(path, frame, crs, offset)), frame
 
 
@@ -112,10 +124,11 @@ def stage_inputs(project, src: Path, crs: str | None, offset, out: Path) -> dict
 
 
 def run_raster_stage(project, settings, input, crs, offset, out, *, default_out: Path, stage: str,
-                     make, label: str) -> Path:
+                     make, label: str, textures: bool = True) -> Path:
     """The body every raster export stage shares (DSM, orthophoto): the reference model (or
     ``input``) -> ``out`` (default ``default_out``) through ``make(source, frame, out, settings,
-    name)``; skipped when the output exists and settings and inputs are unchanged."""
+    name)``; skipped when the output exists and settings and inputs are unchanged. ``textures``:
+    whether ``make`` needs the model's colours (see :func:`load_surface`)."""
     import logging
 
     from ..project import mark_stage_done, stage_done
@@ -127,7 +140,7 @@ def run_raster_stage(project, settings, input, crs, offset, out, *, default_out:
     if out.is_file() and stage_done(stage_dir, settings, inputs):
         logging.getLogger(__name__).info("%s %s is up to date (settings unchanged); skipping", label, out)
         return out
-    source, frame = load_surface(src, project.frame, crs, offset)
+    source, frame = load_surface(src, project.frame, crs, offset, textures=textures)
     summary = make(source, frame, out, settings, str(src))
     mark_stage_done(stage_dir, settings, inputs, **summary)
     return out

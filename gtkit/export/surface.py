@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import GtkitError
-from ..io.mesh import Mesh
+from ..io.mesh import Mesh, MeshPart
 from .grid import Grid
 
 
@@ -90,10 +90,70 @@ class MeshSurface:
         return SurfaceRaster(res.depth.astype(np.float32), res.rgb, grid)
 
 
+class ObjMeshSurface:
+    """An OBJ's triangles without its textures (:mod:`gtkit.io.obj_geometry`) as a height source:
+    what the DSM and ``gtkit model compare`` need. Its raster is drawn a piece of
+    ``piece_triangles`` at a time (:func:`render_heights_in_pieces`) with the origin and depth range
+    :class:`MeshSurface` uses for the whole model, so the heights are those of the textured model
+    loaded whole; memory is the geometry (24 B a vertex, 12 B a triangle) and one piece."""
+
+    kind = "mesh"
+
+    def __init__(self, geometry, piece_triangles: int = 1_000_000):
+        if not geometry.n_triangles:
+            raise GtkitError("mesh has no triangles", geometry.path)
+        self.geometry = geometry
+        self.piece_triangles = piece_triangles
+        self._bounds = None
+
+    def bounds(self) -> np.ndarray:
+        if self._bounds is None:
+            self._bounds = self.geometry.bounds()
+        return self._bounds
+
+    def detail(self) -> float:
+        """As :meth:`MeshSurface.detail`: the texel size when textured, else half the median edge."""
+        t = self.geometry.texel_size
+        return t if t is not None else 0.5 * self.geometry.edge_length()
+
+    def rasterize(self, grid: Grid, with_rgb: bool) -> SurfaceRaster:
+        if with_rgb:
+            raise GtkitError("colours need the textures: load the model as a MeshSurface", self.geometry.path)
+        b = self.bounds()
+        pieces = (Mesh([MeshPart(v, f)]) for v, f in self.geometry.pieces(self.piece_triangles))
+        height = render_heights_in_pieces(pieces, grid, origin=b.mean(0), zrange=(b[0, 2], b[1, 2]))
+        return SurfaceRaster(height, None, grid)
+
+
+def render_heights_in_pieces(pieces, grid: Grid, origin, zrange) -> np.ndarray:
+    """The highest surface per cell of ``grid`` from meshes drawn one after another (each
+    uploaded, drawn over the windows it reaches, released): the cell keeps the highest of the
+    pieces' heights. With the whole model's ``origin`` and ``zrange`` every piece's float32
+    heights are the ones the whole model drawn at once gives, so only a piece is ever resident."""
+    from ..render.renderer import Renderer
+
+    height = np.full(grid.shape, np.nan, np.float32)
+    r = Renderer()
+    try:
+        for mesh in pieces:
+            ids = r.add_mesh(mesh, origin=origin)
+            del mesh
+            res = r.render_ortho(grid.xmin, grid.ymin, grid.xmax, grid.ymax, grid.res, with_rgb=False,
+                                 parts=ids, zrange=zrange)
+            r.remove_parts(ids)
+            if res.depth.shape != grid.shape:  # render_ortho rounds the extent; the grid is whole cells
+                raise GtkitError(f"orthographic render gave {res.depth.shape}, expected {grid.shape}")
+            np.fmax(height, res.depth, out=height)
+    finally:
+        r.release()
+    return height
+
+
 class TiledSurface:
     """A tiled model (ContextCapture layout, :mod:`gtkit.io.tiled`) as a surface source: the
     raster is rendered window by window with only the tiles each window meets resident, and is
-    identical to rendering the same model loaded as one mesh."""
+    identical to rendering the same model loaded as one mesh. Heights alone (the DSM) are drawn
+    one tile at a time from the tiles' triangles, their textures not read."""
 
     kind = "tiled mesh"
 
@@ -110,6 +170,13 @@ class TiledSurface:
         return MeshSurface(self.model.load_tile(smallest.name)).detail()
 
     def rasterize(self, grid: Grid, with_rgb: bool) -> SurfaceRaster:
+        if not with_rgb:
+            # heights only: one tile's triangles at a time, without their textures
+            b = self.bounds()
+            names = self.model.tiles_in_box([grid.xmin, grid.ymin], [grid.xmax, grid.ymax])
+            pieces = (self.model.load_tile(n, textures=False) for n in names)
+            height = render_heights_in_pieces(pieces, grid, origin=b.mean(0), zrange=(b[0, 2], b[1, 2]))
+            return SurfaceRaster(height, None, grid)
         from ..render.tiles import TileStreamer
 
         streamer = TileStreamer(self.model, budget_mb=self.budget_mb)

@@ -163,11 +163,18 @@ class TiledModel:
         return [n for n, t in sorted(self.tiles.items())
                 if np.all(t.bounds[0, :k] <= hi) and np.all(t.bounds[1, :k] >= lo)]
 
-    def load_tile(self, name: str) -> Mesh:
-        """One tile as a :class:`Mesh` in the project's world frame."""
+    def load_tile(self, name: str, textures: bool = True) -> Mesh:
+        """One tile as a :class:`Mesh` in the project's world frame; ``textures=False``: its
+        triangles only (:func:`gtkit.io.obj_geometry.read_obj_geometry`, one part a file)."""
         t = self.tiles[name]
         parts = []
         for f in t.files:
+            if not textures:
+                from .obj_geometry import read_obj_geometry
+
+                g = read_obj_geometry(f)
+                parts.append(MeshPart(self.to_world.points(g.vertices), g.faces, name=f"{name}/{f.stem}"))
+                continue
             m = read_mesh_file(f)
             for p in m.parts:
                 p.vertices = self.to_world.points(p.vertices)

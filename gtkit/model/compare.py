@@ -33,8 +33,8 @@ def default_models(project: Project) -> tuple[Path, Path]:
 
 def height_difference(project: Project, a: Path, b: Path, resolution: float | None = None):
     """(A - B heights on a common grid (NaN where either is empty), grid)."""
-    sa, _ = load_surface(a, project.frame)
-    sb, _ = load_surface(b, project.frame)
+    sa, _ = load_surface(a, project.frame, textures=False)
+    sb, _ = load_surface(b, project.frame, textures=False)
     ba, bb = sa.bounds(), sb.bounds()
     lo, hi = np.maximum(ba[0], bb[0]), np.minimum(ba[1], bb[1])
     if np.any(hi[:2] <= lo[:2]):

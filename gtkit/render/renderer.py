@@ -325,20 +325,26 @@ class Renderer:
     # --- orthographic top-down ---------------------------------------------------------
     def render_ortho(self, xmin: float, ymin: float, xmax: float, ymax: float, gsd: float, *,
                      lighting: Lighting = NO_LIGHT, with_rgb: bool = True, parts: list[int] | None = None,
-                     tile: int = 2048) -> RenderResult:
+                     tile: int = 2048, zrange: tuple[float, float] | None = None) -> RenderResult:
         """Top-down view of [xmin, xmax] x [ymin, ymax] (world) at ``gsd`` metres per pixel.
 
         Returns RGB and the *highest* surface height per pixel (world z), NaN where empty.
         Pixel (i, j) covers x in [xmin + j*gsd, xmin + (j+1)*gsd], y from ymax downward; its
-        value is sampled at the pixel centre. Large rasters are rendered in tiles.
+        value is sampled at the pixel centre. Large rasters are rendered in tiles; a tile that no
+        drawn part's box reaches is left empty without drawing. ``zrange`` (lowest, highest world
+        z; default: the uploaded parts') sets the depth range, so a model drawn piece by piece
+        gets the depth values of the whole model drawn at once.
         """
         parts = self._live() if parts is None else parts
         W = int(round((xmax - xmin) / gsd))
         H = int(round((ymax - ymin) / gsd))
         if W <= 0 or H <= 0:
             raise GtkitError(f"empty orthographic extent {W}x{H} pixels")
-        b = self.bounds()
-        ztop, zbot = float(b[1, 2]) + 10.0, float(b[0, 2]) - 10.0
+        if zrange is None:
+            b = self.bounds()
+            zrange = (float(b[0, 2]), float(b[1, 2]))
+        ztop, zbot = float(zrange[1]) + 10.0, float(zrange[0]) - 10.0
+        boxes = np.stack([self._parts[i].bounds for i in parts]) if parts else np.zeros((0, 2, 3))
         out_h = np.full((H, W), np.nan, np.float32)
         out_rgb = np.zeros((H, W, 3), np.uint8) if with_rgb else None
         # camera looking straight down: x_cam = east, y_cam = south, z_cam = down
@@ -348,6 +354,9 @@ class Renderer:
                 h, w = min(tile, H - r0), min(tile, W - c0)
                 x0, x1 = xmin + c0 * gsd, xmin + (c0 + w) * gsd
                 y1, y0 = ymax - r0 * gsd, ymax - (r0 + h) * gsd
+                if not np.any((boxes[:, 0, 0] <= x1) & (boxes[:, 1, 0] >= x0)
+                              & (boxes[:, 0, 1] <= y1) & (boxes[:, 1, 1] >= y0)):
+                    continue  # nothing drawn here: stays empty (NaN, black)
                 V = np.eye(4)
                 V[:3, :3] = R
                 V[:3, 3] = -R @ np.array([0.0, 0.0, ztop])
