@@ -33,3 +33,21 @@ def test_overlays_from_the_streamed_obj_equal_the_trimesh_ones(tiny_sample):
         np.testing.assert_array_equal(ov.compose("blend", photo, rgb, valid), ov.compose("blend", photo, rgb0, valid0))
         assert ov.alignment(photo, rgb, valid, scale=s) == ov.alignment(photo, rgb0, valid0, scale=s)
 
+
+def test_orthophoto_from_the_streamed_obj_equals_the_trimesh_one(tiny_sample):
+    from gtkit.export.dsm import plan_grid
+    from gtkit.export.sources import load_surface
+    from gtkit.export.surface import MeshSurface, ObjTexturedSurface, rasterize_surface
+
+    root = tiny_sample[0]
+    proj = Project.load(root)
+    obj = root / "model" / "reference.obj"
+    src, frame = load_surface(obj, proj.frame)                            # textures: the orthophoto's source
+    assert isinstance(src, ObjTexturedSurface)
+    ref = MeshSurface(load_model(obj, proj.frame))
+    np.testing.assert_array_equal(src.bounds(), ref.bounds())
+    assert src.detail() == ref.detail()
+    grid = plan_grid(ref, frame, None, default_factor=1.0).grid
+    a, b = rasterize_surface(src, grid, with_rgb=True), rasterize_surface(ref, grid, with_rgb=True)
+    np.testing.assert_array_equal(a.height, b.height)
+    np.testing.assert_array_equal(a.rgb, b.rgb)
