@@ -141,3 +141,56 @@ def test_obj_round_trip_renders_identically(tmp_path):
     parts = sorted(read_mesh_file(path).parts, key=lambda p: len(p.faces))
     assert [len(p.faces) for p in parts] == [2, 12]
     assert tuple(parts[1].colors[0]) == (10, 200, 30)
+
+
+def _triangles(part, uv=None) -> list:
+    """A part's triangles as a sorted list, each its corners (x y z [u v]) from its smallest corner
+    on (the winding kept): the same list for the same triangles in any order or vertex numbering."""
+    c = part.vertices if uv is None else np.concatenate([part.vertices, uv], 1)
+    return sorted(min(tuple(np.roll(t, -k, 0).ravel()) for k in range(3)) for t in c[part.faces])
+
+
+def test_obj_streamed_parts_are_trimesh_parts_and_render_the_same(tmp_path):
+    """gtkit.io.mesh.model_parts (numpy reader, one material and one texture at a time) gives the
+    parts load_model (trimesh) gives: the same textures, the same (vertex, uv) corners and
+    triangles, the same colours for untextured parts; the renders are identical. A file with
+    polygons and relative indices is read the same, and a vertex-coloured OBJ goes through trimesh."""
+    from gtkit.geo import GeoFrame
+    from gtkit.io.mesh import model_parts
+
+    mesh = Mesh([textured_ground(size=120, tex_px=256), textured_ground(size=40, z=3.0, tex_px=128, seed=1),
+                 box([0, 0, 0], [10, 10, 15], (10, 200, 30))])
+    frame = GeoFrame("EPSG:32650", (500000.0, 3370000.0, 20.0))
+    offset = np.array([500100.0, 3370050.0, 0.0])
+    path = write_obj(tmp_path / "m" / "reference.obj", mesh.translated(np.asarray(frame.origin) - offset))
+    write_offset_sidecar(path, "EPSG:32650", offset)
+    ref = load_model(path, frame)
+    got = list(model_parts(path, frame))
+    assert sorted(p.name for p in got) == sorted(p.name for p in ref.parts)
+    for a in ref.parts:
+        b = next(p for p in got if p.name == a.name)
+        assert (a.texture is None) == (b.texture is None)
+        if a.texture is not None:
+            np.testing.assert_array_equal(a.texture, b.texture)
+            assert _triangles(a, a.uv) == _triangles(b, b.uv)
+            assert len(a.vertices) == len(b.vertices)
+        else:
+            np.testing.assert_array_equal(a.colors, b.colors)
+            assert _triangles(a) == _triangles(b)
+    cam = Camera.pinhole(320, 240, 250)
+    for pose in (Pose.from_dji(10, -60, 0, [5.0, -40.0, 70.0]), Pose.from_dji(100, -30, 0, [-30.0, 5.0, 25.0])):
+        a = Renderer(ref).render(cam, pose)
+        r = Renderer()
+        r.add_parts(model_parts(path, frame))
+        b = r.render(cam, pose)
+        np.testing.assert_array_equal(a.rgb, b.rgb)
+        np.testing.assert_array_equal(a.depth, b.depth)
+    # polygons (a quad as a fan) and relative indices: the same triangles as trimesh reads
+    (tmp_path / "q.obj").write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 0 1\nf 1 2 3 4\nf -4 5 -3\n")
+    a, b = read_mesh_file(tmp_path / "q.obj").parts, list(model_parts(tmp_path / "q.obj"))
+    assert len(a) == len(b) == 1 and len(b[0].faces) == len(a[0].faces) == 3
+    assert _triangles(a[0]) == _triangles(b[0])
+    np.testing.assert_array_equal(a[0].colors, b[0].colors)
+    # vertex colours are not kept by the numpy reader: such a file is read by trimesh
+    (tmp_path / "c.obj").write_text("v 0 0 0 1 0 0\nv 1 0 0 1 0 0\nv 0 1 0 1 0 0\nf 1 2 3\n")
+    assert tuple(next(model_parts(tmp_path / "c.obj")).colors[0]) == (255, 0, 0)

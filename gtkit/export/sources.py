@@ -18,7 +18,7 @@ from ..io.mesh import MESH_SUFFIXES, load_model, model_shift, read_offset_sideca
 from ..io.obj_geometry import read_obj_geometry
 from ..project import Paths, file_fingerprint
 from ..io.pointcloud import POINT_SUFFIXES, is_point_cloud, read_points
-from .surface import MeshSurface, ObjMeshSurface, PointSurface, TiledSurface
+from .surface import MeshSurface, ObjMeshSurface, ObjTexturedSurface, PointSurface, TiledSurface
 
 REFERENCE_MODEL = "reference.obj"
 
@@ -64,7 +64,9 @@ def load_surface(path: str | Path, frame: GeoFrame | None = None, crs: str | Non
     with an origin at the data's minimum corner rounded to whole metres. ``textures=False``
     (heights only: the DSM, model compare): an OBJ is read as its triangles
     (:class:`ObjMeshSurface`; its texture images are not decoded) and a tiled model is drawn a
-    tile's triangles at a time.
+    tile's triangles at a time. With textures (the orthophoto) an OBJ is read by the same numpy
+    reader with its corners' uv (:class:`ObjTexturedSurface`), each texture decoded once when
+    its part is uploaded; other meshes go through trimesh (:class:`MeshSurface`).
     """
     path = Path(path)
     if is_tiled(path) and path.exists():
@@ -92,6 +94,20 @@ def load_surface(path: str | Path, frame: GeoFrame | None = None, crs: str | Non
             raise GtkitError(f"point cloud CRS {use_crs} does not match the project CRS {frame.crs_spec}", path)
         return PointSurface(frame.crs_to_local(cloud.xyz), cloud.rgb), frame
     geometry_only = not textures and suffix == ".obj"
+    if textures and suffix == ".obj" and not _vertex_coloured_obj(path):
+        # the orthophoto: the numpy reader keeps the corners' uv; textures decoded at upload
+        if frame is None:
+            side = read_offset_sidecar(path)
+            use_crs = side[0] if side is not None else crs
+            if use_crs is None:
+                raise GtkitError("mesh has no georeference: write a .offset.json sidecar or give --crs and --offset",
+                                 path)
+            off = side[1] if side is not None else np.asarray(offset if offset is not None else (0, 0, 0), float)
+            geom = read_obj_geometry(path, off, corners=True)
+            frame = GeoFrame(crs_name(parse_crs(use_crs, path)), _origin_of(geom.bounds()), source=str(path))
+            geom.vertices += -np.asarray(frame.origin)
+            return ObjTexturedSurface(geom), frame
+        return ObjTexturedSurface(read_obj_geometry(path, model_shift(path, frame, crs, offset), corners=True)), frame
     if frame is None:
         side = read_offset_sidecar(path)
         use_crs = side[0] if side is not None else crs
@@ -109,6 +125,16 @@ def load_surface(path: str | Path, frame: GeoFrame | None = None, crs: str | Non
     if geometry_only:
         return ObjMeshSurface(read_obj_geometry(path, model_shift(path, frame, crs, offset))), frame
     return MeshSurface(load_model(path, frame, crs, offset)), frame
+
+
+def _vertex_coloured_obj(path: Path) -> bool:
+    """Whether the first ``v`` line of an OBJ carries more than x y z (vertex colours: trimesh
+    draws them, the numpy reader does not keep them). Reads until that line (the head of the file)."""
+    with open(path, "rb") as fh:
+        for line in fh:
+            if line[:2] in (b"v ", b"v\t"):
+                return len(line.split()) > 4
+    return False
 
 
 def _origin_of(xyz: np.ndarray) -> tuple[float, float, float]:

@@ -125,6 +125,27 @@ class ObjMeshSurface:
         return SurfaceRaster(height, None, grid)
 
 
+class ObjTexturedSurface(ObjMeshSurface):
+    """An OBJ read by :mod:`gtkit.io.obj_geometry` with its corners' uv and materials: the
+    orthophoto's source. Its raster is :class:`MeshSurface`'s (the same parts, the same upload
+    origin and depth range), but the parts are uploaded one material at a time, each texture
+    decoded once and dropped after its upload, so memory is the geometry, the renderer's copy of
+    the uploaded model, one decoded texture and the raster, not trimesh's parse of the file."""
+
+    def rasterize(self, grid: Grid, with_rgb: bool) -> SurfaceRaster:
+        from ..render.renderer import Renderer
+
+        r = Renderer()
+        try:
+            r.add_parts(self.geometry.parts(), origin=self.bounds().mean(0))
+            res = r.render_ortho(grid.xmin, grid.ymin, grid.xmax, grid.ymax, grid.res, with_rgb=with_rgb)
+        finally:
+            r.release()
+        if res.depth.shape != grid.shape:  # render_ortho rounds the extent; the grid is whole cells
+            raise GtkitError(f"orthographic render gave {res.depth.shape}, expected {grid.shape}")
+        return SurfaceRaster(res.depth.astype(np.float32), res.rgb, grid)
+
+
 def render_heights_in_pieces(pieces, grid: Grid, origin, zrange) -> np.ndarray:
     """The highest surface per cell of ``grid`` from meshes drawn one after another (each
     uploaded, drawn over the windows it reaches, released): the cell keeps the highest of the

@@ -166,6 +166,28 @@ def load_model(path: str | Path, frame=None, crs: str | None = None, offset=None
     return mesh if shift is None else mesh.translated(shift)
 
 
+def model_parts(path: str | Path, frame=None, crs: str | None = None, offset=None):
+    """The parts :func:`load_model` gives, one after another, in bounded memory for an OBJ.
+
+    An OBJ is read by :func:`gtkit.io.obj_geometry.read_obj_geometry` (numpy, 16 MB at a time;
+    each corner's uv and each triangle's material kept) and its parts are yielded one per
+    material, each texture decoded when its part is yielded, so a renderer that uploads them
+    (:meth:`gtkit.render.renderer.Renderer.add_parts`) never holds more than one decoded texture
+    besides what it has uploaded. trimesh (:func:`load_model`) parses a multi-part OBJ twice and
+    holds every texture: it passed 8 GB on a 5.4 M-triangle, 650-texture OBJ. Other formats go
+    through :func:`load_model`, and so does an OBJ with vertex colours (``v x y z r g b``), which
+    the numpy reader does not keep. The file is read (and its errors raised) at the call."""
+    path = Path(path)
+    if path.suffix.lower() == ".obj":
+        from .obj_geometry import read_obj_geometry
+
+        geom = read_obj_geometry(path, model_shift(path, frame, crs, offset), corners=True)
+        if not geom.vertex_extras:
+            return geom.parts()
+        del geom
+    return iter(load_model(path, frame, crs, offset).parts)
+
+
 def model_shift(path: str | Path, frame=None, crs: str | None = None, offset=None) -> np.ndarray | None:
     """What :func:`load_model` adds to the stored vertices (None: nothing), checking the CRS."""
     path = Path(path)

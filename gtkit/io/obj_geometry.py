@@ -12,6 +12,14 @@ blocks of 16 MB (``v``, ``vt`` and ``f`` lines parsed by numpy a block at a time
 So a 5.4 M-triangle, 650-texture OBJ takes ~0.3 GB (24 B a vertex, 12 B a triangle) instead of
 its decoded textures plus trimesh's parse. Polygons are split as a fan (as trimesh does), negative
 (relative) indices are resolved, and vertex colours or normals are ignored.
+
+With ``corners=True`` it also keeps what drawing the textured model needs (the overlay scene,
+the orthophoto): each corner's uv index, each triangle's material, the uv list and the MTL's
+materials. :meth:`ObjGeometry.parts` then yields the model as :class:`gtkit.io.mesh.MeshPart`s,
+one per material as :func:`gtkit.io.mesh.read_mesh_file` (trimesh) makes them, each texture
+decoded only when its part is yielded: a renderer that uploads the parts one after another holds
+one decoded texture at a time besides what it has uploaded (a further 16 B a uv and 16 B a
+triangle here).
 """
 from __future__ import annotations
 
@@ -28,11 +36,27 @@ _USEMTL = re.compile(rb"^usemtl[ \t]+([^\r\n]*)\r?$", re.MULTILINE)
 
 
 @dataclass
+class ObjMaterial:
+    """A ``newmtl`` of the MTL: its texture file (``map_Kd``) and diffuse colour (``Kd``)."""
+
+    name: bytes
+    texture: Path | None = None
+    kd: tuple[float, float, float] | None = None
+    defined: bool = True            # False: used by ``usemtl`` but not in any MTL
+
+
+@dataclass
 class ObjGeometry:
     vertices: np.ndarray            # (N, 3) float64
     faces: np.ndarray               # (M, 3) int32, 0-based
     texel_size: float | None        # median ground size of a texel (m), None when untextured
     path: Path | None = None
+    # with corners=True (else None): what the textured model needs
+    uv: np.ndarray | None = None             # (K, 2) float64 texture coordinates as stored (v up)
+    face_uv: np.ndarray | None = None        # (M, 3) int32 uv index of each corner, -1 = none
+    face_material: np.ndarray | None = None  # (M,) int32 index into materials, -1 = none
+    materials: list[ObjMaterial] | None = None  # in the order of their first ``usemtl``
+    vertex_extras: bool = False     # some ``v`` lines carry more than x y z (vertex colours): ignored here
 
     @property
     def n_triangles(self) -> int:
@@ -60,6 +84,99 @@ class ObjGeometry:
             f = self.faces[s:s + max_triangles]
             used, inv = np.unique(f, return_inverse=True)
             yield self.vertices[used], inv.reshape(-1, 3).astype(np.int32)
+
+    def n_parts(self) -> int:
+        """How many parts :meth:`parts` yields."""
+        if self.face_material is None:
+            raise GtkitError("read with corners=True to draw the textured model", self.path)
+        return len(np.unique(self.face_material))
+
+    def parts(self):
+        """The model as drawable :class:`~gtkit.io.mesh.MeshPart`s, as trimesh's OBJ reader
+        (``group_material``) makes them: one per material, in the order of the materials' first
+        use, faces in file order; a textured part has one vertex per distinct (vertex, uv) pair
+        its corners use, a part without a texture (or without uv on every corner) one per vertex
+        with the material's ``Kd`` colour, triangles without a material grey (180). Each texture
+        is decoded (PIL, RGB) when its part is yielded and not kept here."""
+        from .mesh import MeshPart
+
+        if self.face_material is None:
+            raise GtkitError("read with corners=True to draw the textured model", self.path)
+        order = np.argsort(self.face_material, kind="stable")
+        fm = self.face_material[order]
+        starts = np.flatnonzero(np.r_[True, fm[1:] != fm[:-1]])
+        ends = np.r_[starts[1:], len(fm)]
+        groups = sorted(zip(starts, ends), key=lambda se: (fm[se[0]] < 0, fm[se[0]]))
+        nvt = max(len(self.uv), 1) if self.uv is not None else 1
+        for s, e in groups:
+            m = int(fm[s])
+            idx = order[s:e]
+            f = self.faces[idx]
+            mat = self.materials[m] if m >= 0 else None
+            ft = self.face_uv[idx] if self.uv is not None else None
+            tex = None
+            if mat is not None and mat.texture is not None and ft is not None and (ft >= 0).all():
+                tex = _decode_texture(mat.texture)
+            name = mat.name.decode("utf-8", "replace") if mat is not None else "no_material"
+            if tex is not None:
+                key = f.astype(np.int64) * nvt + ft
+                u, inv = np.unique(key.ravel(), return_inverse=True)
+                yield MeshPart(self.vertices[u // nvt], inv.reshape(-1, 3).astype(np.int64),
+                               uv=self.uv[u % nvt], texture=tex, name=name)
+            else:
+                used, inv = np.unique(f.ravel(), return_inverse=True)
+                yield MeshPart(self.vertices[used], inv.reshape(-1, 3).astype(np.int64),
+                               colors=np.tile(_diffuse_rgb(mat), (len(used), 1)), name=name)
+            del f, ft, tex
+
+
+def _decode_texture(path: Path) -> np.ndarray | None:
+    """(H, W, 3) uint8, row 0 = top, as trimesh hands it to :mod:`gtkit.io.mesh` (PIL, RGB);
+    None when the file cannot be read (trimesh then draws the material's colour)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"))
+    except (OSError, ValueError):
+        return None
+
+
+def _diffuse_rgb(mat: "ObjMaterial | None") -> np.ndarray:
+    """The colour trimesh gives a part without a texture: ``Kd`` x 255 rounded (102 grey for a
+    material without ``Kd``), 180 grey for triangles without a material."""
+    if mat is None or not mat.defined:
+        return np.full(3, 180, np.uint8)
+    if mat.kd is None:
+        return np.full(3, 102, np.uint8)
+    return np.clip(np.round(np.asarray(mat.kd, float) * 255), 0, 255).astype(np.uint8)
+
+
+def _mtl_materials(obj: Path, mtllibs: list[bytes]) -> dict[bytes, ObjMaterial]:
+    """material name -> its ``map_Kd`` file and ``Kd`` colour, from the OBJ's MTL files."""
+    out: dict[bytes, ObjMaterial] = {}
+    for lib in mtllibs:
+        p = obj.parent / lib.decode("utf-8", "replace").strip()
+        if not p.is_file():
+            continue
+        cur = None
+        for line in p.read_bytes().splitlines():
+            t = line.strip().split()
+            if len(t) < 2:
+                continue
+            key = t[0].lower()
+            if key == b"newmtl":
+                cur = out.setdefault(b" ".join(t[1:]), ObjMaterial(b" ".join(t[1:])))
+            elif cur is None:
+                continue
+            elif key == b"map_kd":
+                cur.texture = p.parent / t[-1].decode("utf-8", "replace")
+            elif key == b"kd" and len(t) >= 4:
+                try:
+                    cur.kd = tuple(float(x) for x in t[1:4])
+                except ValueError:
+                    pass
+    return out
 
 
 def _mtl_texture_sizes(obj: Path, mtllibs: list[bytes]) -> dict[bytes, tuple[int, int]]:
@@ -101,12 +218,15 @@ class _Reader:
         self.mtllibs: list[bytes] = []
         self.materials: dict[bytes, int] = {}
         self.material = -1
+        self.more_than_xyz = False
 
     # --- numbers --------------------------------------------------------------------------
     def _floats(self, lines: list[bytes], k: int) -> np.ndarray:
         """The first ``k`` numbers of each line (a block's ``v`` or ``vt`` lines, keyword cut off)."""
         tok = b" ".join(lines).split()
         n = len(lines)
+        if k == 3 and len(tok) != k * n:
+            self.more_than_xyz = True  # vertex colours (or w): trimesh draws those, parts() does not
         try:
             if len(tok) == k * n:
                 return np.array(tok, dtype=np.float64).reshape(n, k)
@@ -225,9 +345,10 @@ def _texel_size(V: np.ndarray, F: np.ndarray, FT: np.ndarray, FM: np.ndarray, VT
     return float(np.median(sizes_all)) if len(sizes_all) else None
 
 
-def read_obj_geometry(path: str | Path, shift=None) -> ObjGeometry:
+def read_obj_geometry(path: str | Path, shift=None, corners: bool = False) -> ObjGeometry:
     """The triangles of an OBJ (``shift`` added to its vertices) and its texel size; textures are
-    not decoded. Raises :class:`GtkitError` for a file that is not a readable OBJ."""
+    not decoded. ``corners``: also keep the uv of each corner and the material of each triangle
+    (:meth:`ObjGeometry.parts`). Raises :class:`GtkitError` for a file that is not a readable OBJ."""
     path = Path(path)
     if not path.is_file():
         raise GtkitError("mesh file not found", path)
@@ -259,10 +380,11 @@ def read_obj_geometry(path: str | Path, shift=None) -> ObjGeometry:
     if shift is not None:
         V = V + np.asarray(shift, dtype=np.float64)
     texel = None
-    if r.vt and r.materials:
-        FT = np.concatenate(r.ft)
-        FM = np.concatenate(r.fm)
-        VT = np.concatenate(r.vt)
+    FT = np.concatenate(r.ft) if (r.vt and r.materials) or corners else None
+    FM = np.concatenate(r.fm) if (r.vt and r.materials) or corners else None
+    VT = np.concatenate(r.vt) if r.vt else None
+    r.ft = r.fm = r.vt = []
+    if VT is not None and r.materials:
         if FT.max() < len(VT):
             by_name = _mtl_texture_sizes(path, r.mtllibs)
             sizes = np.zeros((len(r.materials), 2), np.float64)
@@ -270,4 +392,11 @@ def read_obj_geometry(path: str | Path, shift=None) -> ObjGeometry:
                 if name in by_name:
                     sizes[i] = by_name[name]
             texel = _texel_size(V, F, FT, FM, VT, sizes)
-    return ObjGeometry(V, F, texel, path)
+    if not corners:
+        return ObjGeometry(V, F, texel, path)
+    if VT is not None and (FT.min() < -1 or FT.max() >= len(VT)):
+        raise GtkitError(f"a face refers to a texture coordinate that does not exist ({len(VT)} given)", path)
+    defined = _mtl_materials(path, r.mtllibs)
+    mats = [defined.get(name, ObjMaterial(name, defined=False)) for name, _ in sorted(r.materials.items(), key=lambda kv: kv[1])]
+    return ObjGeometry(V, F, texel, path, uv=VT, face_uv=FT.astype(np.int32) if VT is not None else None,
+                       face_material=FM, materials=mats, vertex_extras=r.more_than_xyz)

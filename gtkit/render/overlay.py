@@ -368,7 +368,7 @@ class OverlayScene:
     Used by both the GUI (one renderer, reused) and :func:`write_overlays`."""
 
     def __init__(self, project, pose_file: str | Path | None = None, model_path: str | Path | None = None):
-        from ..io.mesh import load_model
+        from ..io.mesh import model_parts
         from ..io.poses import read_poses
         from .renderer import Renderer
 
@@ -388,7 +388,10 @@ class OverlayScene:
         self.cameras.update(intrinsics_for(P, self.pose_file))
         model_path = Path(model_path) if model_path else _find_model(P)
         self.model_path = model_path
-        self.renderer = Renderer(load_model(model_path, project.frame))
+        # an OBJ is read by numpy and uploaded a material (one texture) at a time: bounded memory
+        # for a large model, the same parts as load_model (trimesh) gives
+        self.renderer = Renderer()
+        self.renderer.add_parts(model_parts(model_path, project.frame))
 
     def images(self) -> list[str]:
         return sorted(n for n in self.poses if n in self.cameras)

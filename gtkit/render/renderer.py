@@ -192,12 +192,19 @@ class Renderer:
         ``origin`` (world point, optional) is subtracted from vertices before the float32
         upload instead of each part's mean: pieces of one mesh uploaded with the same origin
         render bit-identically to the whole mesh uploaded with it."""
+        return self.add_parts(mesh.parts, procedural_glsl, origin)
+
+    def add_parts(self, parts, procedural_glsl: str | None = None, origin=None) -> list[int]:
+        """Upload :class:`~gtkit.io.mesh.MeshPart`s one after another, as :meth:`add_mesh`;
+        ``parts`` may be a generator (:meth:`gtkit.io.obj_geometry.ObjGeometry.parts`), so that
+        only the part being uploaded (its decoded texture) is held besides what is uploaded."""
         prog = self._program(procedural_glsl)
         ids = []
-        for part in mesh.parts:
+        for part in parts:
             mode = 2 if procedural_glsl else (0 if part.texture is not None and part.uv is not None else 1)
             self._parts.append(_Part(self.ctx, prog, part, mode, origin, self.anisotropy))
             ids.append(len(self._parts) - 1)
+            del part
         return ids
 
     def clear(self) -> None:
