@@ -116,12 +116,14 @@ def open_model(root: Path, model: str, frame, tile_budget_mb: float = 512.0, ani
         from ..render.tiles import TileStreamer
 
         return TileStreamer(read_tiled(path, frame), budget_mb=tile_budget_mb, renderer=Renderer(anisotropy=anisotropy))
-    from ..io.mesh import load_model
+    from ..io.mesh import model_parts
     from ..render.renderer import Renderer
 
     if not path.is_file():
         raise GtkitError("reference model not found (expected model/reference.obj or a tiled model folder)", path)
-    return Renderer(load_model(path, frame), anisotropy=anisotropy)
+    r = Renderer(anisotropy=anisotropy)   # an OBJ uploaded a material at a time (bounded memory)
+    r.add_parts(model_parts(path, frame))
+    return r
 
 
 def model_bounds(r) -> np.ndarray:
