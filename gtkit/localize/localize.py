@@ -68,7 +68,8 @@ class FeatureSettings:
     # Per database view. SIFT on a 640 x 480 view costs ~55 ms of detection (OpenCV's first octave is
     # the view doubled) + ~25 us a descriptor (1 thread): 3000 -> 2000 keypoints is 132 -> 109 ms CPU.
     # Small seeds 1, 2, 6 (28 queries each): 3000 and 2000 both localize 100 / 100 / 100 %; 1500 loses
-    # a query at (1m,1deg) on seeds 1 and 6 (seq3's vegetation: 35 inliers at 3000, none at 1500).
+    # a query at (1m,1deg) on seeds 1 and 6 (seed 6's seq3/0008, vegetation: 35 inliers at 3000, 33 at
+    # 2000, not localized at 1500).
     max_keypoints_db: int = 2000
     max_side: int = 1024               # query images are resized to this longer side for features
     contrast_threshold: float = 0.02
