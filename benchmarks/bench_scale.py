@@ -221,8 +221,14 @@ def stage_costs(root: Path) -> dict[str, dict]:
                              "disk_mb": None, "old": False}
     loc = _json(work / "localize" / "stage.json").get("summary", {})
     if loc.get("db_features_s") is not None and loc.get("db_features_views"):
-        out["  db features"] = {"wall_s": loc["db_features_s"], "cpu_s": None, "peak_gb": None, "disk_mb": None,
-                                "old": False, "per_view_s": loc["db_features_s"] / loc["db_features_views"]}
+        n = loc["db_features_views"]
+        cpu = loc.get("db_features_cpu_s")   # records since issue 16: CPU of the extraction (workers' chunks)
+        out["  db features"] = {"wall_s": loc["db_features_s"], "cpu_s": cpu, "peak_gb": None, "disk_mb": None,
+                                "old": False, "views": n, "per_view_s": loc["db_features_s"] / n,
+                                "cpu_per_view_s": None if cpu is None else cpu / n,
+                                "global_wall_s": loc.get("db_global_s"), "global_cpu_s": loc.get("db_global_cpu_s"),
+                                "kb_per_view": loc.get("db_features_kb_per_view"),
+                                "load_avg_1m": (loc.get("cost") or {}).get("load_avg_1m")}
     return out
 
 
@@ -337,7 +343,25 @@ def table(projects: list[Path], per_site: bool = False) -> tuple[str, dict]:
             fits[name.strip()] = {"driver": drv, **row}
             lines.append(f"| {name.strip()} | {drv} | " + " | ".join(_f(row[k], "{:.2f}") for k in
                                                                     ("wall_s", "cpu_s", "peak_gb", "disk_mb")) + " |")
+    lines += ["", db_feature_lines(sites, costs)]
     return "\n".join(lines), {"sites": sites, "costs": costs, "exponents": fits}
+
+
+def db_feature_lines(sites: list[dict], costs: list[dict]) -> str:
+    """Database features a view, per site: CPU and wall seconds (the issue-16 target is 0.1 s a view
+    on an idle 2-core machine), the VLAD codebook + global descriptors, and the disk a view."""
+    rows = ["| site | db views | features CPU s a view | features wall s a view | VLAD CPU / wall s | kB a view | "
+            "load (1 min) |", "|---|---|---|---|---|---|---|"]
+    for s, c in zip(sites, costs):
+        r = c.get("  db features")
+        if not r:
+            continue
+        load = r.get("load_avg_1m")
+        rows.append(f"| {s['preset']} {s['seed']} | {r['views']} | {_f(r.get('cpu_per_view_s'), '{:.3f}')} | "
+                    f"{_f(r['per_view_s'], '{:.3f}')} | {_f(r.get('global_cpu_s'), '{:.1f}')} / "
+                    f"{_f(r.get('global_wall_s'), '{:.1f}')} | {_f(r.get('kb_per_view'))} | "
+                    f"{'-' if not load else ' -> '.join(f'{x:.1f}' for x in load)} |")
+    return "\n".join(rows) if len(rows) > 2 else ""
 
 
 def main(argv=None) -> None:

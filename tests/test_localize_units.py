@@ -128,6 +128,36 @@ def test_vlad_ranks_the_same_place_first():
         assert int(np.argmax(G @ q)) == i
 
 
+def test_vlad_of_many_images_at_once_is_the_vlad_of_each():
+    """The database's global descriptors are computed in batches (one matrix product, residuals summed
+    with reduceat): they equal the textbook per-image VLAD (np.add.at of residuals, float64)."""
+    from gtkit.localize.descriptors import Vlad
+    from gtkit.localize.features import unit_descriptors
+
+    rng = np.random.default_rng(5)
+    words = rng.integers(0, 120, (16, 128))          # descriptors near 16 words: no near-ties in the assignment
+    images = [np.clip(words[rng.integers(0, 16, n)] + rng.integers(-8, 9, (n, 128)), 0, 255).astype(np.uint8)
+              for n in (300, 0, 1, 7, 250)]
+    vlad = Vlad.train(np.concatenate(images), k=16)
+
+    def textbook(desc):
+        v = np.zeros(vlad.centers.shape)
+        if len(desc):
+            x, c = unit_descriptors(desc).astype(np.float64), vlad.centers.astype(np.float64)
+            a = ((x[:, None] - c[None]) ** 2).sum(-1).argmin(1)
+            np.add.at(v, a, x - c[a])
+        n = np.linalg.norm(v, axis=1, keepdims=True)
+        v = np.sign(v) * np.sqrt(np.abs(np.where(n > 0, v / np.maximum(n, 1e-12), 0)))
+        return v.ravel() / max(np.linalg.norm(v), 1e-12)
+
+    G = vlad.describe_many(images, batch_rows=400)   # several batches, an image never split
+    assert G.shape == (5, vlad.dim) and G.dtype == np.float32
+    for g, im in zip(G, images):
+        np.testing.assert_allclose(g, textbook(im), atol=1e-4)   # float32 vs float64 (signed sqrt near 0)
+        np.testing.assert_array_equal(g, vlad.describe(im))
+    assert not G[1].any()                              # no descriptors: the zero vector
+
+
 def test_look_at_points_meet_the_ground_where_the_axis_does():
     ground = 19.0
     # an oblique query 62 m above ground, DJI pitch -33, yaw -135 (looking south-west)

@@ -53,7 +53,7 @@ from ..pose import Pose
 from ..project import (Project, file_fingerprint, mark_stage_done, relative_paths, settings_dict, settings_key,
                        stage_done, start_stage_clock)
 from .database import PAPER_PITCHES, Database, load_database
-from .executors import ExecutorSettings, iter_map, make_executor, run_map
+from .executors import ExecutorSettings, SerialExecutor, iter_map, make_executor, run_map
 from .pnp import PnPSettings
 
 log = logging.getLogger(__name__)
@@ -65,7 +65,12 @@ MIN_QUERY_KEYPOINTS = 20
 class FeatureSettings:
     extractor: str = "sift"
     max_keypoints: int = 4000          # per query image
-    max_keypoints_db: int = 3000       # per database view
+    # Per database view. SIFT on a 640 x 480 view costs ~55 ms of detection (OpenCV's first octave is
+    # the view doubled) + ~25 us a descriptor (1 thread): 3000 -> 2000 keypoints is 132 -> 109 ms CPU.
+    # Small seeds 1, 2, 6 (28 queries each): 3000 and 2000 both localize 100 / 100 / 100 %; 1500 loses
+    # a query at (1m,1deg) on seeds 1 and 6 (seed 6's seq3/0008, vegetation: 35 inliers at 3000, 33 at
+    # 2000, not localized at 1500).
+    max_keypoints_db: int = 2000
     max_side: int = 1024               # query images are resized to this longer side for features
     contrast_threshold: float = 0.02
 
@@ -208,9 +213,15 @@ _W: dict = {}
 
 
 def _extract_db_views(task):
+    """Features of a chunk of database views -> ([(name, Features | None)], CPU seconds of the chunk).
+    ``one_thread``: the executor runs one worker a core, so OpenCV's own threads would only
+    oversubscribe the cores."""
     import cv2
 
-    fs_d, items = task
+    fs_d, items, one_thread = task
+    c0 = time.process_time()
+    if one_thread:
+        cv2.setNumThreads(1)
     fs = FeatureSettings(**fs_d)
     key = ("dbx", fs)
     if _W.get("dbx_key") != key:
@@ -223,7 +234,7 @@ def _extract_db_views(task):
             out.append((name, None))
             continue
         out.append((name, _W["dbx"].extract(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))))
-    return out
+    return out, time.process_time() - c0
 
 
 def prepare_database(project: Project, db: Database, s: LocalizeSettings, executor: ExecutorSettings) -> dict:
@@ -231,7 +242,7 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
     import h5py
 
     from .descriptors import Vlad
-    from .features import read_features, write_features
+    from .features import write_features
 
     cache = _db_cache(project, s)
     cache.mkdir(parents=True, exist_ok=True)
@@ -244,13 +255,16 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
     except OSError:  # a run killed mid-write: start the feature file again
         feats.unlink(missing_ok=True)
         todo = list(db.views)
+    c0, worker_cpu = time.process_time(), 0.0
     if todo:
-        tasks = [(asdict(s.features), [(v.name, str(v.image)) for v in todo[i:i + 16]])
-                 for i in range(0, len(todo), 16)]
         ex = make_executor(executor)
+        one_thread = not isinstance(ex, SerialExecutor)  # a worker a core (dask: one thread a worker)
+        tasks = [(asdict(s.features), [(v.name, str(v.image)) for v in todo[i:i + 16]], one_thread)
+                 for i in range(0, len(todo), 16)]
         try:
             with h5py.File(feats, "a") as h5:
-                for res in iter_map(ex, _extract_db_views, tasks, progress="db features"):
+                for res, cpu in iter_map(ex, _extract_db_views, tasks, progress="db features"):
+                    worker_cpu += cpu if one_thread else 0.0  # serial: already in this process's time
                     for name, f in res:
                         if f is None:
                             raise GtkitError("unreadable database image", db.root / "images" / f"{name}.jpg")
@@ -260,8 +274,12 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
             ex.close()
     times["db_features_s"] = time.perf_counter() - t0
     times["db_features_views"] = len(todo)
+    # CPU seconds: this process (all its threads) + what each chunk took in its worker (worker
+    # start-up not counted; the stage's cost record counts it for local processes)
+    times["db_features_cpu_s"] = time.process_time() - c0 + worker_cpu
+    times["db_features_kb_per_view"] = feats.stat().st_size / 1024 / max(1, len(db.views)) if feats.is_file() else None
     # codebook + global descriptors (keyed by the full database view list)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     names = sorted(v.name for v in db.views)
     gkey = settings_key({"names": names, "words": s.vlad_words, "desc": s.descriptor})
     gfile = cache / f"global-{s.descriptor}{s.vlad_words}-{gkey[:8]}.npz"
@@ -277,10 +295,12 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
             if not sample:
                 raise GtkitError("database views have no features (textureless model?)", feats)
             vlad = Vlad.train(np.concatenate(sample), k=s.vlad_words)
-            G = np.stack([vlad.describe(read_features(h5, n).desc) for n in names]).astype(np.float32)
+            G = np.concatenate([vlad.describe_many([h5[n]["desc"][()] for n in names[i:i + 64]])
+                                for i in range(0, len(names), 64)]).astype(np.float32)
         with atomic_path(gfile) as tmp, open(tmp, "wb") as f:
             np.savez(f, centers=vlad.centers, G=G, names=np.array(names))
     times["db_global_s"] = time.perf_counter() - t0
+    times["db_global_cpu_s"] = time.process_time() - c0
     return {"cache": str(cache), "features": str(feats), "global": str(gfile), **times}
 
 
@@ -590,6 +610,10 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
         "executor": asdict(executor), "queries": results}, project.paths.root))
     mark_stage_done(out, settings, inputs, outputs=[Path(offline["cache"])], n_queries=len(names), n_localized=n_ok,
                     wall_s=round(wall, 2), db_features_s=round(offline["db_features_s"], 2),
-                    db_features_views=offline["db_features_views"], db_global_s=round(offline["db_global_s"], 2))
+                    db_features_views=offline["db_features_views"], db_global_s=round(offline["db_global_s"], 2),
+                    db_features_cpu_s=round(offline["db_features_cpu_s"], 2),
+                    db_global_cpu_s=round(offline["db_global_cpu_s"], 2),
+                    db_features_kb_per_view=None if offline["db_features_kb_per_view"] is None
+                    else round(offline["db_features_kb_per_view"], 1))
     log.info("localize (%s): %d of %d queries localized in %.1f s", ablation, n_ok, len(names), wall)
     return out
