@@ -234,7 +234,8 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
         raise GtkitError("no photo has enough neighbours for stereo (see the reasons with -v)", block)
     depth_keys = {k: v for k, v in settings_dict(settings).items()
                   if k in ("max_image_size", "neighbours", "min_neighbours", "max_angle_deg", "baseline_ratio",
-                           "target_ratio", "max_disparities", "block_size", "pair_agree", "min_pair_agree")}
+                           "target_ratio", "max_disparities", "block_size", "pair_agree", "min_pair_agree",
+                           "sgbm_disparity_bias_px")}
     folder = work / "depth" / settings_key({"depth": depth_keys, "inputs": inputs, "version": DEPTH_VERSION})
     folder.mkdir(parents=True, exist_ok=True)
     failed = depth_maps(project, views, neighbours, settings, folder, show)
