@@ -75,19 +75,9 @@ class MeshSurface:
         return t if t is not None else 0.5 * self.edge_length()
 
     def rasterize(self, grid: Grid, with_rgb: bool) -> SurfaceRaster:
-        from ..render.renderer import Renderer
-
-        r = Renderer()
         # one upload origin for every part, the model's centre: the same raster as the model
         # delivered as tiles (gtkit.render.tiles uses that origin), bit for bit
-        r.add_mesh(self.mesh, origin=self.mesh.bounds().mean(0))
-        try:
-            res = r.render_ortho(grid.xmin, grid.ymin, grid.xmax, grid.ymax, grid.res, with_rgb=with_rgb)
-        finally:
-            r.release()
-        if res.depth.shape != grid.shape:  # render_ortho rounds the extent; the grid is whole cells
-            raise GtkitError(f"orthographic render gave {res.depth.shape}, expected {grid.shape}")
-        return SurfaceRaster(res.depth.astype(np.float32), res.rgb, grid)
+        return _ortho_raster(lambda r: r.add_mesh(self.mesh, origin=self.mesh.bounds().mean(0)), grid, with_rgb)
 
 
 class ObjMeshSurface:
@@ -133,17 +123,22 @@ class ObjTexturedSurface(ObjMeshSurface):
     the uploaded model, one decoded texture and the raster, not trimesh's parse of the file."""
 
     def rasterize(self, grid: Grid, with_rgb: bool) -> SurfaceRaster:
-        from ..render.renderer import Renderer
+        return _ortho_raster(lambda r: r.add_parts(self.geometry.parts(), origin=self.bounds().mean(0)), grid, with_rgb)
 
-        r = Renderer()
-        try:
-            r.add_parts(self.geometry.parts(), origin=self.bounds().mean(0))
-            res = r.render_ortho(grid.xmin, grid.ymin, grid.xmax, grid.ymax, grid.res, with_rgb=with_rgb)
-        finally:
-            r.release()
-        if res.depth.shape != grid.shape:  # render_ortho rounds the extent; the grid is whole cells
-            raise GtkitError(f"orthographic render gave {res.depth.shape}, expected {grid.shape}")
-        return SurfaceRaster(res.depth.astype(np.float32), res.rgb, grid)
+
+def _ortho_raster(upload, grid: Grid, with_rgb: bool) -> SurfaceRaster:
+    """``upload(renderer)`` puts the model in a fresh renderer; the grid drawn straight down."""
+    from ..render.renderer import Renderer
+
+    r = Renderer()
+    try:
+        upload(r)
+        res = r.render_ortho(grid.xmin, grid.ymin, grid.xmax, grid.ymax, grid.res, with_rgb=with_rgb)
+    finally:
+        r.release()
+    if res.depth.shape != grid.shape:  # render_ortho rounds the extent; the grid is whole cells
+        raise GtkitError(f"orthographic render gave {res.depth.shape}, expected {grid.shape}")
+    return SurfaceRaster(res.depth.astype(np.float32), res.rgb, grid)
 
 
 def render_heights_in_pieces(pieces, grid: Grid, origin, zrange) -> np.ndarray:
