@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import GtkitError
 from ..io.mesh import Mesh, MeshPart
+from ..io.obj_geometry import triangle_texel_sizes
 from .grid import Grid
 
 
@@ -58,13 +59,7 @@ class MeshSurface:
             if p.texture is None or p.uv is None:
                 continue
             th, tw = p.texture.shape[:2]
-            v = p.vertices[p.faces]
-            a3 = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-            t = p.uv[p.faces] * np.array([tw, th])
-            d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
-            a2 = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
-            ok = (a2 > 1e-9) & (a3 > 1e-12)
-            sizes.append(np.sqrt(a3[ok] / a2[ok]))
+            sizes.append(triangle_texel_sizes(p.vertices[p.faces], p.uv[p.faces] * np.array([tw, th])))
         sizes = np.concatenate(sizes) if sizes else np.zeros(0)
         return float(np.median(sizes)) if len(sizes) else None
 

@@ -184,24 +184,14 @@ def _mtl_texture_sizes(obj: Path, mtllibs: list[bytes]) -> dict[bytes, tuple[int
     from PIL import Image
 
     sizes: dict[bytes, tuple[int, int]] = {}
-    for lib in mtllibs:
-        p = obj.parent / lib.decode("utf-8", "replace").strip()
-        if not p.is_file():
+    for name, mat in _mtl_materials(obj, mtllibs).items():
+        if mat.texture is None:
             continue
-        name = None
-        for line in p.read_bytes().splitlines():
-            t = line.strip().split()
-            if not t:
-                continue
-            if t[0] == b"newmtl":
-                name = b" ".join(t[1:])
-            elif t[0] == b"map_Kd" and name is not None and len(t) > 1:
-                img = p.parent / t[-1].decode("utf-8", "replace")
-                try:
-                    with Image.open(img) as im:
-                        sizes[name] = im.size
-                except (OSError, ValueError):
-                    pass
+        try:
+            with Image.open(mat.texture) as im:
+                sizes[name] = im.size
+        except (OSError, ValueError):
+            pass
     return sizes
 
 
@@ -323,6 +313,16 @@ class _Reader:
             self.segment(seg)
 
 
+def triangle_texel_sizes(v: np.ndarray, uv_px: np.ndarray) -> np.ndarray:
+    """sqrt(3-D area / texture area in texels) of triangles (corners ``v`` (n, 3, 3) in metres,
+    ``uv_px`` (n, 3, 2) in texels), degenerate ones left out: the ground size of one texel."""
+    a3 = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    d1, d2 = uv_px[:, 1] - uv_px[:, 0], uv_px[:, 2] - uv_px[:, 0]
+    a2 = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
+    ok = (a2 > 1e-9) & (a3 > 1e-12)
+    return np.sqrt(a3[ok] / a2[ok])
+
+
 def _texel_size(V: np.ndarray, F: np.ndarray, FT: np.ndarray, FM: np.ndarray, VT: np.ndarray,
                 sizes: np.ndarray, chunk: int = 1_000_000) -> float | None:
     """Median sqrt(3-D area / texture area in texels) over textured, non-degenerate triangles."""
@@ -334,13 +334,7 @@ def _texel_size(V: np.ndarray, F: np.ndarray, FT: np.ndarray, FM: np.ndarray, VT
         if not tex.any():
             continue
         f, t, m = f[tex], t[tex], m[tex]
-        v = V[f]
-        a3 = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-        uv = VT[t] * sizes[m][:, None, :]
-        d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
-        a2 = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0])
-        ok = (a2 > 1e-9) & (a3 > 1e-12)
-        out.append(np.sqrt(a3[ok] / a2[ok]))
+        out.append(triangle_texel_sizes(V[f], VT[t] * sizes[m][:, None, :]))
     sizes_all = np.concatenate(out) if out else np.zeros(0)
     return float(np.median(sizes_all)) if len(sizes_all) else None
 
