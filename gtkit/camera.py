@@ -21,6 +21,17 @@ MODELS = {
 }
 
 
+def distort(xn: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Normalised coordinates (..., 2) -> distorted, OpenCV (k1, k2, p1, p2) ``d`` (4,) or one per point (..., 4)."""
+    k1, k2, p1, p2 = (d[..., i] for i in range(4))
+    x, y = xn[..., 0], xn[..., 1]
+    r2 = x * x + y * y
+    radial = 1.0 + k1 * r2 + k2 * r2 * r2
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([xd, yd], axis=-1)
+
+
 @dataclass(frozen=True)
 class Camera:
     model: str
@@ -122,13 +133,7 @@ class Camera:
 
     # --- projection ----------------------------------------------------------------
     def _distort(self, xn: np.ndarray) -> np.ndarray:
-        k1, k2, p1, p2 = self.distortion
-        x, y = xn[..., 0], xn[..., 1]
-        r2 = x * x + y * y
-        radial = 1.0 + k1 * r2 + k2 * r2 * r2
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.stack([xd, yd], axis=-1)
+        return distort(xn, self.distortion)
 
     def world_to_image(self, xn: np.ndarray) -> np.ndarray:
         """Normalised image coordinates (x/z, y/z) -> pixels, distortion applied."""

@@ -8,7 +8,7 @@ import numpy as np
 import pycolmap
 from scipy.optimize import least_squares
 
-from ..camera import Camera
+from ..camera import Camera, distort
 from ..pose import Pose
 
 
@@ -141,21 +141,12 @@ def _cam_arrays(cams: list[Camera]) -> np.ndarray:
     return np.array([[c.fx, c.fy, c.cx, c.cy, *c.distortion] for c in cams], float).reshape(-1, 8)
 
 
-def _distort_many(xn: np.ndarray, d: np.ndarray) -> np.ndarray:
-    k1, k2, p1, p2 = (d[..., i] for i in range(4))
-    x, y = xn[..., 0], xn[..., 1]
-    r2 = x * x + y * y
-    radial = 1.0 + k1 * r2 + k2 * r2 * r2
-    return np.stack([x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-                     y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y], axis=-1)
-
-
 def _pixels_many(X: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points X (N, 3) seen by cameras (N, k): pixels (N, k, 2) and depth (N, k)."""
     pc = np.einsum("nkij,nj->nki", R, X) + t
     z = pc[..., 2]
     xn = pc[..., :2] / np.where(z > 1e-6, z, 1e-6)[..., None]
-    xd = _distort_many(xn, K[..., 4:])
+    xd = distort(xn, K[..., 4:])
     return np.stack([K[..., 0] * xd[..., 0] + K[..., 2], K[..., 1] * xd[..., 1] + K[..., 3]], axis=-1), z
 
 
@@ -167,7 +158,7 @@ def _solve_masked(R, t, K, uv, mask, iterations: int = 10) -> tuple[np.ndarray, 
     xn = xd.copy()
     with np.errstate(all="ignore"):
         for _ in range(20):  # undistorted normalised coordinates (fixed point, as Camera.image_to_world)
-            xn = xn - (_distort_many(xn, K[..., 4:]) - xd)
+            xn = xn - (distort(xn, K[..., 4:]) - xd)
         P = np.concatenate([R, t[..., None]], axis=-1)
         A = np.concatenate([(xn[..., 0:1] * P[:, :, 2] - P[:, :, 0]) * w[..., None],
                             (xn[..., 1:2] * P[:, :, 2] - P[:, :, 1]) * w[..., None]], axis=1)
