@@ -40,3 +40,19 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     .venv/bin/python -m pip install -q -e '.[test,distributed,learned]'; } 2>&1 | { grep -v "is ignored: it is neither" || true; }
   echo "$want" > "$stamp"
 fi
+
+# With an NVIDIA GPU (nvidia-smi lists one; GTKIT_CPU_ONLY=1 to skip): pycolmap's CUDA build of the same
+# version (same API) in place of the CPU build, so `gtkit model build` makes its depth maps with COLMAP's
+# PatchMatch on the GPU (gtkit/model/patchmatch.py, chosen automatically when pycolmap.has_cuda).
+# Both builds install the same `pycolmap` module: the CPU one is removed first (and the CUDA one written
+# again over what a later `pip install -e .` put back), and the CPU one restored if the CUDA
+# wheel cannot be installed. Not exercised on the 2-core CI machine (no GPU there).
+if [ "${GTKIT_CPU_ONLY:-0}" != 1 ] && command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L 2>/dev/null | grep -q GPU; then
+  if ! .venv/bin/python -c "import pycolmap, sys; sys.exit(0 if pycolmap.has_cuda else 1)" 2>/dev/null; then
+    v=$(.venv/bin/python -c "import importlib.metadata as m; print(m.version('pycolmap'))")
+    echo "setup: NVIDIA GPU found: installing pycolmap-cuda12==$v in place of pycolmap"
+    .venv/bin/python -m pip uninstall -q -y pycolmap
+    .venv/bin/python -m pip install -q --force-reinstall --no-deps "pycolmap-cuda12==$v" ||
+      { echo "setup: pycolmap-cuda12==$v could not be installed; keeping the CPU build"; .venv/bin/python -m pip install -q "pycolmap==$v"; }
+  fi
+fi

@@ -490,3 +490,97 @@ def test_sgbm_disparities_are_unbiased_over_sub_pixel_shifts():
           f"now {corrected.mean():+.4f} px (swing {np.ptp(corrected):.3f})")
     assert raw.mean() > 0.015 and abs(corrected.mean()) < 0.006
     assert np.ptp(corrected) < 0.5 * np.ptp(raw)
+
+
+def test_patchmatch_workspace_is_the_views_as_a_colmap_model(built, tmp_path):
+    """The GPU path's COLMAP workspace, written on the CPU: pycolmap reads back each view's pinhole K,
+    pose and working image exactly, the sparse tracks give each photo a depth range around its scene
+    (COLMAP's: 1st-99th percentile of its points' depths, x0.75 / x1.25), the stereo config lists each
+    photo's neighbours. (PatchMatch itself needs CUDA: the next test.)"""
+    import cv2
+    import pycolmap
+
+    from gtkit.model.patchmatch import workspace_name, write_workspace
+    from gtkit.model.views import block_dir, choose_neighbours, load_image, load_views
+
+    root, _ = built
+    proj = Project.load(root)
+    views, _ = load_views(proj, FAST)
+    nb, _ = choose_neighbours(views, FAST)
+    ws = tmp_path / "ws"
+    write_workspace(proj, views, nb, block_dir(proj), ws)
+    rec = pycolmap.Reconstruction(str(ws / "sparse"))
+    assert len(rec.images) == len(views)
+    by_name = {im.name: im for im in rec.images.values()}
+    for n, v in views.items():
+        im = by_name[workspace_name(n)]
+        cam = rec.cameras[im.camera_id]
+        assert cam.model.name == "PINHOLE" and (cam.width, cam.height) == (v.width, v.height)
+        assert np.allclose(cam.params, [v.K[0, 0], v.K[1, 1], v.K[0, 2], v.K[1, 2]], rtol=0, atol=1e-9)
+        assert np.allclose(im.cam_from_world().matrix(), v.pose.matrix[:3], atol=1e-9)
+        z = np.sort([v.pose.transform(rec.points3D[p.point3D_id].xyz[None])[0, 2]
+                     for p in im.points2D if p.has_point3D()])
+        lo, hi = 0.75 * z[int(0.01 * len(z))], 1.25 * z[int(0.99 * len(z))]
+        assert len(z) >= 20 and lo < v.median_depth < hi and lo < v.far and hi > v.near, (n, lo, hi, v.near, v.far)
+    for n in list(views)[:3]:
+        png = cv2.imread(str(ws / "images" / workspace_name(n)), cv2.IMREAD_UNCHANGED)
+        assert np.array_equal(png, load_image(proj, views[n], gray=True))
+    lines = (ws / "stereo" / "patch-match.cfg").read_text().split("\n")
+    cfg = {lines[i]: [s.strip() for s in lines[i + 1].split(",")] for i in range(0, len(lines) - 1, 2)}
+    assert cfg == {workspace_name(n): [workspace_name(m) for m in v] for n, v in nb.items()}
+
+
+def test_colmap_depth_map_files_round_trip(tmp_path):
+    """COLMAP's dense array files (``W&H&C&`` then float32 planes, rows of W) as gtkit reads and writes them."""
+    from gtkit.model.patchmatch import read_colmap_array, write_colmap_array
+
+    d = np.arange(15, dtype=np.float32).reshape(3, 5)          # 3 rows of 5
+    write_colmap_array(tmp_path / "d.bin", d)
+    raw = (tmp_path / "d.bin").read_bytes()
+    assert raw.startswith(b"5&3&1&") and np.frombuffer(raw[6:], "<f4")[:6].tolist() == [0, 1, 2, 3, 4, 5]
+    assert np.array_equal(read_colmap_array(tmp_path / "d.bin"), d)
+    nrm = np.random.default_rng(0).random((4, 6, 3)).astype(np.float32)
+    write_colmap_array(tmp_path / "n.bin", nrm)
+    assert np.array_equal(read_colmap_array(tmp_path / "n.bin"), nrm)
+
+
+def test_depth_method_is_chosen_by_cuda():
+    from gtkit.model.patchmatch import cuda_available, resolve_method
+
+    assert resolve_method("sgbm") == "sgbm"
+    assert resolve_method("auto") == ("patchmatch" if cuda_available() else "sgbm")
+    if not cuda_available():
+        with pytest.raises(GtkitError, match="pycolmap-cuda12"):
+            resolve_method("patchmatch")
+    with pytest.raises(GtkitError, match="not one of"):
+        resolve_method("opencl")
+
+
+@pytest.mark.skipif("not __import__('gtkit.model.patchmatch', fromlist=['x']).cuda_available()",
+                    reason="COLMAP's PatchMatch needs pycolmap's CUDA build and an NVIDIA GPU")
+def test_patchmatch_depth_maps_agree_with_the_cpu_path(built, tmp_path):
+    """With a GPU: the PatchMatch depth maps of the tiny sample against the CPU path's SGBM maps on the
+    same views (same pixels): median relative difference under 1 %, and at least as many pixels."""
+    from gtkit.model import depth as D
+    from gtkit.model.patchmatch import depth_maps
+    from gtkit.model.views import block_dir, choose_neighbours, load_views
+
+    root, _ = built
+    proj = Project.load(root)
+    views, _ = load_views(proj, FAST)
+    nb, _ = choose_neighbours(views, FAST)
+    sgbm = next(f for f in (root / "work" / "model" / "depth").iterdir() if f.is_dir())
+    folder = tmp_path / "depth"
+    folder.mkdir()
+    failed = depth_maps(proj, views, nb, FAST, folder, block_dir(proj), show=False)
+    assert len(failed) <= 0.1 * len(nb)
+    rel, share = [], []
+    for n in nb:
+        if n in failed or not D.depth_file(sgbm, n).is_file():
+            continue
+        a, b = D.read_depth(D.depth_file(folder, n)), D.read_depth(D.depth_file(sgbm, n))
+        ok = np.isfinite(a) & np.isfinite(b)
+        rel.append(np.median(np.abs(a[ok] - b[ok]) / b[ok]))
+        share.append(np.isfinite(a).mean() / max(np.isfinite(b).mean(), 1e-9))
+    print(f"PatchMatch vs SGBM over {len(rel)} photos: median |rel| {np.median(rel):.4f}, valid share ratio {np.median(share):.2f}")
+    assert np.median(rel) < 0.01 and np.median(share) > 0.9

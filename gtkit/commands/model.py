@@ -21,6 +21,9 @@ def register(sub):
     b.add_argument("--neighbours", type=int, default=S.neighbours, help="stereo neighbours a photo (default %(default)s)")
     b.add_argument("--max-triangles", type=int, default=S.max_triangles, help="simplification budget (default %(default)s)")
     b.add_argument("--poisson-depth", type=int, default=S.poisson_depth, help="Poisson octree depth (default %(default)s)")
+    b.add_argument("--depth-method", choices=("auto", "sgbm", "patchmatch"), default=S.depth_method,
+                   help="depth maps by SGBM on the CPU or COLMAP's PatchMatch on an NVIDIA GPU (pycolmap-cuda12); "
+                        "auto: PatchMatch where CUDA is there (default %(default)s)")
     b.add_argument("--voxel", type=float, default=S.voxel_m, help="fusion voxel, m (default %(default)s)")
     b.add_argument("--use", action="store_true",
                    help="make the built model the project's model even when a delivered one exists "
@@ -42,10 +45,10 @@ def run_build(args):
     from ..model.settings import ModelSettings
 
     s = ModelSettings(max_image_size=args.max_image_size, neighbours=args.neighbours, max_triangles=args.max_triangles,
-                      poisson_depth=args.poisson_depth, voxel_m=args.voxel)
+                      poisson_depth=args.poisson_depth, voxel_m=args.voxel, depth_method=args.depth_method)
     r = run(args.project, s, force=args.force, use=True if args.use else None)
     print(f"model: {r['model']} ({r['triangles']} triangles, {r['parts']} textured parts) from {r['depth_maps']} "
-          f"depth maps of {r['photos']} photos; {r['points']} fused points")
+          f"depth maps ({r.get('depth_method', 'sgbm')}) of {r['photos']} photos; {r['points']} fused points")
     print("seconds " + ", ".join(f"{k} {v}" for k, v in r["seconds"].items())
           + "; peak memory GB " + ", ".join(f"{k} {v}" for k, v in r["peak_memory_gb"].items()))
     for n, why in r["skipped"].items():

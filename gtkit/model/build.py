@@ -28,7 +28,7 @@ from ..io.mesh import Mesh, write_obj, write_offset_sidecar
 from ..project import (Project, file_fingerprint, mark_stage_done, reset_peak_rss, settings_dict, settings_key,
                        stage_done, start_stage_clock)
 from . import depth as D
-from . import fusion, surface, texture
+from . import fusion, patchmatch, surface, texture
 from .settings import ModelSettings
 from .views import block_dir, choose_neighbours, fusion_neighbours, load_image, load_views, region
 
@@ -236,12 +236,18 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
                   if k in ("max_image_size", "neighbours", "min_neighbours", "max_angle_deg", "baseline_ratio",
                            "target_ratio", "max_disparities", "block_size", "pair_agree", "min_pair_agree",
                            "sgbm_disparity_bias_px")}
+    method = patchmatch.resolve_method(settings.depth_method)
+    if method != "sgbm":                  # (the SGBM maps' folder name is what it was before there was a choice)
+        depth_keys["method"] = method
     folder = work / "depth" / settings_key({"depth": depth_keys, "inputs": inputs, "version": DEPTH_VERSION})
     folder.mkdir(parents=True, exist_ok=True)
-    failed = depth_maps(project, views, neighbours, settings, folder, show)
+    if method == "patchmatch":
+        failed = patchmatch.depth_maps(project, views, neighbours, settings, folder, block, show)
+    else:
+        failed = depth_maps(project, views, neighbours, settings, folder, show)
     skipped.update(failed)
     _mark("depth", t, mem, cpu)
-    _step_done("depth", t, mem, f"{len(neighbours) - len(failed)} depth maps")
+    _step_done("depth", t, mem, f"{len(neighbours) - len(failed)} depth maps ({method})")
 
     cloud = fuse(project, views, neighbours, settings, folder, show, force=force)
     n_points = len(cloud)
@@ -306,7 +312,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     for s in steps:
         cpu_s[s], prev = round(cpu[s] - prev, 1), cpu[s]
     summary = {"model": str(out.relative_to(P.root)), "photos": n_photos,
-               "depth_maps": len(neighbours) - len(failed), "skipped": skipped, "points": int(n_points),
+               "depth_maps": len(neighbours) - len(failed), "depth_method": method, "skipped": skipped, "points": int(n_points),
                "poisson_triangles": int(n_poisson), "triangles": int(len(F)), "parts": n_parts,
                "surface_tiles": n_tiles, "unseen_faces": int((best < 0).sum()), "seam_colour_diff": seam_diff, "seconds": seconds,
                "cpu_seconds": cpu_s, "peak_memory_gb": {k: round(v, 2) for k, v in mem.items()},

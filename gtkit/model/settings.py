@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 @dataclass
 class ModelSettings:
+    # which path makes the depth maps: "auto" (COLMAP's PatchMatch on an NVIDIA GPU where pycolmap's CUDA
+    # build is installed, else SGBM on the CPU), "sgbm" or "patchmatch" (gtkit.model.patchmatch)
+    depth_method: str = "auto"
     max_image_size: int = 1024        # px, longest side of the working images (photos are scaled down to it)
     neighbours: int = 3               # source photos matched against each photo (best first)
     min_neighbours: int = 2           # a photo with fewer usable neighbours is skipped (with its reason)
