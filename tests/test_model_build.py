@@ -584,3 +584,26 @@ def test_patchmatch_depth_maps_agree_with_the_cpu_path(built, tmp_path):
         share.append(np.isfinite(a).mean() / max(np.isfinite(b).mean(), 1e-9))
     print(f"PatchMatch vs SGBM over {len(rel)} photos: median |rel| {np.median(rel):.4f}, valid share ratio {np.median(share):.2f}")
     assert np.median(rel) < 0.01 and np.median(share) > 0.9
+
+
+def test_model_build_settings_come_from_the_command_line_then_project_toml(tmp_path, capsys):
+    """`gtkit model build` resolves its settings like every stage: flag > project.toml [model_build] >
+    default. A depth method the machine cannot run is refused before any work, naming the fix."""
+    from gtkit.cli import main
+    from gtkit.geo import GeoFrame
+    from gtkit.model.patchmatch import cuda_available
+
+    proj = Project.create(tmp_path / "site", GeoFrame("EPSG:32650", (500000.0, 3300000.0, 0.0)))
+    proj.config["model_build"] = {"depth_method": "patchmatch", "neighbours": 4}
+    proj.save()
+    root = str(proj.paths.root)
+    if not cuda_available():
+        assert main(["model", "build", root]) == 2
+        err = capsys.readouterr().err
+        assert "'patchmatch' needs pycolmap's CUDA build" in err and err.count("\n") == 1
+    assert main(["model", "build", root, "--depth-method", "sgbm"]) == 2      # the flag wins: on to the block
+    assert "run `gtkit sfm DIR --block reference` first" in capsys.readouterr().err
+    proj.config["model_build"] = {"neighbors": 4}
+    proj.save()
+    assert main(["model", "build", root]) == 2
+    assert "unknown setting model_build.neighbors" in capsys.readouterr().err

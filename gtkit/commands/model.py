@@ -3,6 +3,7 @@
 Examples::
 
     gtkit model build site                      # after `gtkit sfm site --block reference`
+    gtkit model build site --depth-method sgbm  # the CPU path even where a GPU is there
     gtkit model build site --use                # a delivered model exists: make the built one the project's
     gtkit model compare site                    # DSM height difference built - delivered (GeoTIFF)
 """
@@ -17,14 +18,15 @@ def register(sub):
     ms = p.add_subparsers(dest="model_what", metavar="WHAT", required=True)
     b = ms.add_parser("build", help="textured reference model from the georegistered reference block")
     b.add_argument("project")
-    b.add_argument("--max-image-size", type=int, default=S.max_image_size, help="px (default %(default)s)")
-    b.add_argument("--neighbours", type=int, default=S.neighbours, help="stereo neighbours a photo (default %(default)s)")
-    b.add_argument("--max-triangles", type=int, default=S.max_triangles, help="simplification budget (default %(default)s)")
-    b.add_argument("--poisson-depth", type=int, default=S.poisson_depth, help="Poisson octree depth (default %(default)s)")
-    b.add_argument("--depth-method", choices=("auto", "sgbm", "patchmatch"), default=S.depth_method,
+    # flags left out take project.toml [model_build], then ModelSettings' defaults (gtkit.settings.resolve)
+    b.add_argument("--max-image-size", type=int, default=None, help=f"px (default {S.max_image_size})")
+    b.add_argument("--neighbours", type=int, default=None, help=f"stereo neighbours a photo (default {S.neighbours})")
+    b.add_argument("--max-triangles", type=int, default=None, help=f"simplification budget (default {S.max_triangles})")
+    b.add_argument("--poisson-depth", type=int, default=None, help=f"Poisson octree depth (default {S.poisson_depth})")
+    b.add_argument("--depth-method", choices=("auto", "sgbm", "patchmatch"), default=None,
                    help="depth maps by SGBM on the CPU or COLMAP's PatchMatch on an NVIDIA GPU (pycolmap-cuda12); "
-                        "auto: PatchMatch where CUDA is there (default %(default)s)")
-    b.add_argument("--voxel", type=float, default=S.voxel_m, help="fusion voxel, m (default %(default)s)")
+                        f"auto: PatchMatch where CUDA is there (default {S.depth_method})")
+    b.add_argument("--voxel", type=float, default=None, help=f"fusion voxel, m (default {S.voxel_m})")
     b.add_argument("--use", action="store_true",
                    help="make the built model the project's model even when a delivered one exists "
                         "(the delivered files move to model/delivered/)")
@@ -43,17 +45,20 @@ def register(sub):
 def run_build(args):
     from ..model.build import run
     from ..model.settings import ModelSettings
+    from ..project import Project
+    from ..settings import resolve
 
-    s = ModelSettings(max_image_size=args.max_image_size, neighbours=args.neighbours, max_triangles=args.max_triangles,
-                      poisson_depth=args.poisson_depth, voxel_m=args.voxel, depth_method=args.depth_method)
-    r = run(args.project, s, force=args.force, use=True if args.use else None)
+    project = Project.load(args.project)
+    s = resolve(ModelSettings(), "model_build", project, {
+        "max_image_size": args.max_image_size, "neighbours": args.neighbours, "max_triangles": args.max_triangles,
+        "poisson_depth": args.poisson_depth, "voxel_m": args.voxel, "depth_method": args.depth_method})
+    r = run(project, s, force=args.force, use=True if args.use else None)
     print(f"model: {r['model']} ({r['triangles']} triangles, {r['parts']} textured parts) from {r['depth_maps']} "
           f"depth maps ({r.get('depth_method', 'sgbm')}) of {r['photos']} photos; {r['points']} fused points")
     print("seconds " + ", ".join(f"{k} {v}" for k, v in r["seconds"].items())
           + "; peak memory GB " + ", ".join(f"{k} {v}" for k, v in r["peak_memory_gb"].items()))
     for n, why in r["skipped"].items():
         print(f"  skipped {n}: {why}")
-    from ..project import Project
     from ..view.model import prepare_cache
 
     print(prepare_cache(Project.load(args.project)))  # the project's model, built or delivered

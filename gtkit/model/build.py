@@ -210,6 +210,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     """Build the reference model; returns the summary (also in ``work/model/stage.json``)."""
     project = project if isinstance(project, Project) else Project.load(project)
     settings = settings or ModelSettings()
+    method = patchmatch.resolve_method(settings.depth_method)     # a path that cannot run is refused first
     P = project.paths
     work = P.stage(STAGE)
     block = block_dir(project)
@@ -236,7 +237,6 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
                   if k in ("max_image_size", "neighbours", "min_neighbours", "max_angle_deg", "baseline_ratio",
                            "target_ratio", "max_disparities", "block_size", "pair_agree", "min_pair_agree",
                            "sgbm_disparity_bias_px")}
-    method = patchmatch.resolve_method(settings.depth_method)
     if method != "sgbm":                  # (the SGBM maps' folder name is what it was before there was a choice)
         depth_keys["method"] = method
     folder = work / "depth" / settings_key({"depth": depth_keys, "inputs": inputs, "version": DEPTH_VERSION})
