@@ -11,6 +11,8 @@ def register(sub):
     p.add_argument("--modes", default="blend,swipe,edges,checker", help="comma-separated overlay modes")
     p.add_argument("--max-side", type=int, default=1024, help="long side of the overlays in pixels")
     p.add_argument("--images", nargs="*", help="only these images (names relative to images/)")
+    p.add_argument("--model", help="model to draw: a mesh file, or a tiled model folder (streamed: only the tiles "
+                                   "each photo sees are uploaded) (default: model/reference.obj, else the tiled model)")
     p.set_defaults(func=run)
 
 
@@ -23,6 +25,6 @@ def run(args):
         print(f"[{k}/{n}] {name}: misalignment {a.misalignment_px:.2f} px, edge distance {a.edge_distance_px:.2f} px",
               flush=True)
 
-    s = write_overlays(args.project, args.poses, args.out, st, args.images, progress)
+    s = write_overlays(args.project, args.poses, args.out, st, args.images, progress, model_path=args.model)
     print(f"median misalignment {s['median_misalignment_px']} px, median edge distance "
           f"{s['median_edge_distance_px']} px over {len(s['images'])} images")

@@ -367,10 +367,9 @@ class OverlayScene:
     """The reference model uploaded once, the poses and intrinsics: renders overlays on demand.
     Used by both the GUI (one renderer, reused) and :func:`write_overlays`."""
 
-    def __init__(self, project, pose_file: str | Path | None = None, model_path: str | Path | None = None):
-        from ..io.mesh import model_parts
+    def __init__(self, project, pose_file: str | Path | None = None, model_path: str | Path | None = None,
+                 tile_budget_mb: float = 1024.0):
         from ..io.poses import read_poses
-        from .renderer import Renderer
 
         P = self.paths = project.paths
         self.project = project
@@ -386,12 +385,9 @@ class OverlayScene:
             self.cameras.update(intrinsics_for(P, ref))
         self.poses.update(read_poses(self.pose_file))
         self.cameras.update(intrinsics_for(P, self.pose_file))
-        model_path = Path(model_path) if model_path else _find_model(P)
+        model_path = Path(model_path) if model_path else _find_model(project)
         self.model_path = model_path
-        # an OBJ is read by numpy and uploaded a material (one texture) at a time: bounded memory
-        # for a large model, the same parts as load_model (trimesh) gives
-        self.renderer = Renderer()
-        self.renderer.add_parts(model_parts(model_path, project.frame))
+        self.renderer = scene_renderer(model_path, project.frame, tile_budget_mb)
 
     def images(self) -> list[str]:
         return sorted(n for n in self.poses if n in self.cameras)
@@ -411,16 +407,46 @@ class OverlayScene:
         return photo, res.rgb, res.valid, c.width / cam.width
 
 
-def _find_model(paths) -> Path:
+def scene_renderer(model_path: Path, frame, tile_budget_mb: float = 1024.0):
+    """What draws the model for the overlays. An OBJ is read by numpy and uploaded a material (one
+    texture) at a time, the same parts as load_model (trimesh) gives; all of it stays uploaded. A tiled
+    model (a folder or its metadata.xml) is streamed: each photo draws only the tiles in its frustum,
+    and the resident tiles stay under ``tile_budget_mb`` (:class:`gtkit.render.tiles.TileStreamer`),
+    so a site whose textures alone pass the memory budget can still be overlaid."""
+    from .renderer import Renderer
+
+    model_path = Path(model_path)
+    if model_path.is_dir() or model_path.name == "metadata.xml":
+        from ..io.tiled import read_tiled
+        from .tiles import TileStreamer
+
+        return TileStreamer(read_tiled(model_path, frame), budget_mb=tile_budget_mb, renderer=Renderer())
+    from ..io.mesh import model_parts
+
+    r = Renderer()
+    r.add_parts(model_parts(model_path, frame))
+    return r
+
+
+def _find_model(project) -> Path:
+    """The project's model: model/reference.obj, else its tiled model (built: project.toml [model]
+    tiled; imported: [imports.model]), else the only mesh in model/."""
+    paths = project.paths
     p = paths.model / "reference.obj"
     if p.is_file():
         return p
+    tiled = project.config.get("model", {}).get("tiled")
+    if tiled and (paths.root / tiled).is_dir():
+        return paths.root / tiled
+    imported = project.config.get("imports", {}).get("model", {})
+    if imported.get("format") == "tiled" and Path(imported.get("source", "")).exists():
+        return Path(imported["source"])
     from ..io.mesh import MESH_SUFFIXES
 
     found = sorted(q for q in paths.model.glob("*") if q.suffix.lower() in MESH_SUFFIXES) \
         if paths.model.is_dir() else []
     if not found:
-        raise GtkitError("no reference model (model/reference.obj) in the project", paths.model)
+        raise GtkitError("no reference model (model/reference.obj or a tiled model) in the project", paths.model)
     return found[0]
 
 
@@ -430,7 +456,7 @@ def overlay_file_name(image: str, mode: str) -> str:
 
 def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None, out_dir: str | Path | None = None,
                    settings: OverlaySettings | None = None, images: list[str] | None = None,
-                   progress=None) -> dict:
+                   progress=None, model_path: str | Path | None = None) -> dict:
     """Write overlay PNGs for every posed image and ``alignment.json`` with the edge distance
     of each; returns that summary. Default output: ``reports/overlays/``."""
     import cv2
@@ -443,7 +469,7 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None,
         if m not in MODES:
             raise GtkitError(f"unknown overlay mode {m!r} (one of {', '.join(MODES)})")
     proj = Project.load(project_dir)
-    scene = OverlayScene(proj, pose_file)
+    scene = OverlayScene(proj, pose_file, model_path)
     out = Path(out_dir) if out_dir else proj.paths.reports / "overlays"
     names = images or scene.images()
     missing = [n for n in names if n not in scene.poses or n not in scene.cameras]
