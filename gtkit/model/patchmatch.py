@@ -25,6 +25,7 @@ its neighbours' maps), and skips a photo whose output files exist, so a killed r
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -191,4 +192,7 @@ def depth_maps(project, views: dict[str, View], neighbours: dict[str, list[str]]
             raise GtkitError(f"PatchMatch depth map is {d.shape[1]}x{d.shape[0]}, the view {v.width}x{v.height}", f)
         d = np.where(d > 0, d, np.nan).astype(np.float32)
         D.write_depth(D.depth_file(folder, n), d, {"neighbours": nb, "method": "patchmatch"})
+    # the workspace holds every photo's photometric and geometric depth and normal maps (~40 MB a photo
+    # at 1024 px): gone once gtkit has its depth maps (a killed run keeps it and COLMAP resumes in it)
+    shutil.rmtree(ws, ignore_errors=True)
     return failed
