@@ -218,6 +218,27 @@ def test_predicted_overlap_is_the_share_of_the_prior_ground_a_view_sees():
     assert predicted_overlap(up.center, up.R, cam, VR, Vt, cam, 0.0).tolist() == [0.0] * 5
 
 
+def test_predicted_overlap_counts_only_ground_seen_from_a_similar_direction():
+    """With ``angle_deg`` a view that sees the query's ground from far off the query's direction counts
+    less: the medium sample's failures (views of the same ground 23-34 deg away won the plain overlap)."""
+    cam = Camera.pinhole(800, 600, 400.0)
+    # a query 45 deg below the horizon, 150 m up, looking north at the ground ~150 m ahead
+    q = Pose.from_dji(0.0, -45.0, 0.0, [0.0, -150.0, 150.0])
+    same = Pose.from_dji(0.0, -45.0, 0.0, [0.0, -160.0, 160.0])      # the same direction, 10 m further
+    # a 70-deg-off-nadir view 350 m back, its axis on the query's look-at point: the ground seen 25 deg off
+    d = 150.0 / np.tan(np.radians(20.0))
+    far = Pose.from_dji(0.0, -20.0, 0.0, [0.0, -d, 150.0])
+    VR, Vt = np.array([same.R, far.R]), np.array([same.t, far.t])
+    plain = predicted_overlap(q.center, q.R, cam, VR, Vt, cam, 0.0)
+    weighted = predicted_overlap(q.center, q.R, cam, VR, Vt, cam, 0.0, angle_deg=(15.0, 35.0))
+    assert plain[1] > 0.9 and plain[0] > 0.9                  # both see the query's ground
+    assert weighted[0] > 0.9 * plain[0]                       # the same direction keeps its overlap
+    assert weighted[1] < 0.6 * plain[1] and weighted[1] < weighted[0] - 0.3
+    # beyond the second angle nothing counts; within the first everything does
+    assert predicted_overlap(q.center, q.R, cam, VR, Vt, cam, 0.0, angle_deg=(0.1, 0.2))[1] == 0.0
+    assert np.allclose(predicted_overlap(q.center, q.R, cam, VR, Vt, cam, 0.0, angle_deg=(89.0, 90.0)), plain)
+
+
 def test_rank_candidates_puts_the_position_prior_first_and_fills_up():
     score = np.array([0.9, 0.8, 0.7, 0.6, 0.5, 0.4])
     keep = np.array([True, True, False, True, True, True])
