@@ -18,14 +18,10 @@ from ..io.mesh import MESH_SUFFIXES, load_model, model_shift, read_offset_sideca
 from ..io.obj_geometry import read_obj_geometry
 from ..project import Paths, file_fingerprint
 from ..io.pointcloud import POINT_SUFFIXES, is_point_cloud, read_points
+from ..io.tiled import is_tiled
 from .surface import MeshSurface, ObjMeshSurface, ObjTexturedSurface, PointSurface, TiledSurface
 
 REFERENCE_MODEL = "reference.obj"
-
-
-def is_tiled(path: Path) -> bool:
-    """A tiled model is given as its folder or its ``metadata.xml``."""
-    return path.is_dir() or path.name == "metadata.xml"
 
 
 def reference_model(paths: Paths) -> Path:

@@ -42,6 +42,11 @@ from .srs import SrsToWorld, srs_key
 log = logging.getLogger(__name__)
 
 METADATA = "metadata.xml"
+
+
+def is_tiled(path: Path) -> bool:
+    """A tiled model is given as its folder or its ``metadata.xml``."""
+    return Path(path).is_dir() or Path(path).name == METADATA
 INDEX = "tiles_index.json"
 INDEX_VERSION = 1
 _TILE_DIR = re.compile(r"^Tile_[-+]\d+_[-+]\d+")

@@ -35,6 +35,7 @@ from ..camera import Camera
 from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json
 from ..io.poses import write_intrinsics, write_poses
+from ..io.tiled import is_tiled
 from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done, start_stage_clock
 from .executors import ExecutorSettings, iter_map, make_executor
 from .grid import View, ground_level, make_views
@@ -101,29 +102,12 @@ PART_SELECTORS: dict[str, Callable] = {"all": _all_parts}
 _WORKER: dict = {}
 
 
-def is_tiled(path: Path) -> bool:
-    return path.is_dir() or path.name == "metadata.xml"
-
-
 def open_model(root: Path, model: str, frame, tile_budget_mb: float = 512.0, anisotropy: float = 8.0):
-    """A renderer for the reference model: a :class:`Renderer` holding the whole mesh, or for a
-    tiled model a :class:`gtkit.render.tiles.TileStreamer` that uploads only the tiles each view
-    sees (memory bounded by ``tile_budget_mb``). Both offer ``render``, ``render_ortho``, ``release``."""
-    path = Path(root) / model
-    if is_tiled(path):
-        from ..io.tiled import read_tiled
-        from ..render.renderer import Renderer
-        from ..render.tiles import TileStreamer
+    """A renderer for the project's model ``model`` (relative to ``root``): see
+    :func:`gtkit.render.tiles.open_renderer`."""
+    from ..render.tiles import open_renderer
 
-        return TileStreamer(read_tiled(path, frame), budget_mb=tile_budget_mb, renderer=Renderer(anisotropy=anisotropy))
-    from ..io.mesh import model_parts
-    from ..render.renderer import Renderer
-
-    if not path.is_file():
-        raise GtkitError("reference model not found (expected model/reference.obj or a tiled model folder)", path)
-    r = Renderer(anisotropy=anisotropy)   # an OBJ uploaded a material at a time (bounded memory)
-    r.add_parts(model_parts(path, frame))
-    return r
+    return open_renderer(Path(root) / model, frame, tile_budget_mb, anisotropy)
 
 
 def model_bounds(r) -> np.ndarray:

@@ -370,6 +370,7 @@ class OverlayScene:
     def __init__(self, project, pose_file: str | Path | None = None, model_path: str | Path | None = None,
                  tile_budget_mb: float = 1024.0):
         from ..io.poses import read_poses
+        from .tiles import open_renderer
 
         P = self.paths = project.paths
         self.project = project
@@ -387,7 +388,9 @@ class OverlayScene:
         self.cameras.update(intrinsics_for(P, self.pose_file))
         model_path = Path(model_path) if model_path else _find_model(project)
         self.model_path = model_path
-        self.renderer = scene_renderer(model_path, project.frame, tile_budget_mb)
+        # a tiled model is streamed (only the tiles in each photo's frustum, under the budget), so a site
+        # whose textures alone pass the memory budget can still be overlaid
+        self.renderer = open_renderer(model_path, project.frame, tile_budget_mb)
 
     def images(self) -> list[str]:
         return sorted(n for n in self.poses if n in self.cameras)
@@ -405,27 +408,6 @@ class OverlayScene:
         photo = read_photo(self.project.paths.images / name, (c.width, c.height))
         res = self.renderer.render(c, pose)
         return photo, res.rgb, res.valid, c.width / cam.width
-
-
-def scene_renderer(model_path: Path, frame, tile_budget_mb: float = 1024.0):
-    """What draws the model for the overlays. An OBJ is read by numpy and uploaded a material (one
-    texture) at a time, the same parts as load_model (trimesh) gives; all of it stays uploaded. A tiled
-    model (a folder or its metadata.xml) is streamed: each photo draws only the tiles in its frustum,
-    and the resident tiles stay under ``tile_budget_mb`` (:class:`gtkit.render.tiles.TileStreamer`),
-    so a site whose textures alone pass the memory budget can still be overlaid."""
-    from .renderer import Renderer
-
-    model_path = Path(model_path)
-    if model_path.is_dir() or model_path.name == "metadata.xml":
-        from ..io.tiled import read_tiled
-        from .tiles import TileStreamer
-
-        return TileStreamer(read_tiled(model_path, frame), budget_mb=tile_budget_mb, renderer=Renderer())
-    from ..io.mesh import model_parts
-
-    r = Renderer()
-    r.add_parts(model_parts(model_path, frame))
-    return r
 
 
 def _find_model(project) -> Path:

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Camera
-from ..io.tiled import TiledModel
+from ..errors import GtkitError
+from ..io.tiled import TiledModel, is_tiled
 from ..pose import Pose
 from .renderer import NO_LIGHT, Lighting, Renderer, RenderResult
 
@@ -228,3 +229,25 @@ class TileStreamer:
     def release(self) -> None:
         self.renderer.remove_parts([i for r in self._resident.values() for i in r.ids])
         self._resident.clear()
+
+
+def open_renderer(path, frame, tile_budget_mb: float = 512.0, anisotropy: float = 8.0):
+    """What draws a model: for a tiled model (its folder or ``metadata.xml``) a :class:`TileStreamer`
+    that uploads only the tiles each view sees (resident tiles under ``tile_budget_mb``); for a mesh
+    file a :class:`Renderer` holding all of it, an OBJ read by numpy and uploaded a material (one
+    texture) at a time (:func:`gtkit.io.mesh.model_parts`). Both offer ``render``, ``render_ortho``,
+    ``release``."""
+    from pathlib import Path
+
+    path = Path(path)
+    if is_tiled(path):
+        from ..io.tiled import read_tiled
+
+        return TileStreamer(read_tiled(path, frame), budget_mb=tile_budget_mb, renderer=Renderer(anisotropy=anisotropy))
+    if not path.is_file():
+        raise GtkitError("reference model not found (expected model/reference.obj or a tiled model folder)", path)
+    from ..io.mesh import model_parts
+
+    r = Renderer(anisotropy=anisotropy)
+    r.add_parts(model_parts(path, frame))
+    return r
