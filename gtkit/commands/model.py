@@ -61,7 +61,7 @@ def run_build(args):
         print(f"  skipped {n}: {why}")
     from ..view.model import prepare_cache
 
-    print(prepare_cache(Project.load(args.project)))  # the project's model, built or delivered
+    print(prepare_cache(project))  # the project's model, built or delivered (run() recorded it in project)
 
 
 def run_compare(args):

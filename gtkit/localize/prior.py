@@ -103,8 +103,7 @@ def predicted_overlap(center, R, camera, view_R: np.ndarray, view_t: np.ndarray,
     full, zero = angle_deg
     VR, Vt = np.asarray(view_R, dtype=np.float64), np.asarray(view_t, dtype=np.float64)
     centres = -np.einsum("nji,nj->ni", VR, Vt)                            # view camera centres (N, 3)
-    dq = P - c[None]
-    dq /= np.linalg.norm(dq, axis=1, keepdims=True)
+    dq = rays[ok]                                                          # unit rays of the query to P
     dv = P[None] - centres[:, None, :]
     dv /= np.linalg.norm(dv, axis=2, keepdims=True)
     ang = np.degrees(np.arccos(np.clip(np.einsum("nmi,mi->nm", dv, dq), -1.0, 1.0)))
