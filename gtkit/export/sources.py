@@ -25,15 +25,20 @@ REFERENCE_MODEL = "reference.obj"
 
 
 def reference_model(paths: Paths) -> Path:
-    """The project's reference model: ``model/reference.obj``, else a tiled model imported with
-    ``gtkit import model`` (project.toml [imports.model]), else the only mesh in model/."""
+    """The project's reference model: ``model/reference.obj``, else its tiled model (built by
+    ``gtkit model build``: project.toml [model] tiled; imported by ``gtkit import model``:
+    [imports.model]), else the only mesh in model/."""
     import tomllib
 
     p = paths.model / REFERENCE_MODEL
     if p.is_file():
         return p
     if paths.project_toml.is_file():
-        imported = tomllib.loads(paths.project_toml.read_text()).get("imports", {}).get("model", {})
+        config = tomllib.loads(paths.project_toml.read_text())
+        tiled = config.get("model", {}).get("tiled")
+        if tiled and (paths.root / tiled).is_dir():
+            return paths.root / tiled
+        imported = config.get("imports", {}).get("model", {})
         if imported.get("format") == "tiled" and Path(imported.get("source", "")).exists():
             return Path(imported["source"])
     found = sorted(f for f in paths.model.glob("*") if f.suffix.lower() in MESH_SUFFIXES) if paths.model.is_dir() else []

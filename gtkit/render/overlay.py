@@ -386,7 +386,9 @@ class OverlayScene:
             self.cameras.update(intrinsics_for(P, ref))
         self.poses.update(read_poses(self.pose_file))
         self.cameras.update(intrinsics_for(P, self.pose_file))
-        model_path = Path(model_path) if model_path else _find_model(project)
+        from ..export.sources import reference_model
+
+        model_path = Path(model_path) if model_path else reference_model(project.paths)
         self.model_path = model_path
         # a tiled model is streamed (only the tiles in each photo's frustum, under the budget), so a site
         # whose textures alone pass the memory budget can still be overlaid
@@ -408,28 +410,6 @@ class OverlayScene:
         photo = read_photo(self.project.paths.images / name, (c.width, c.height))
         res = self.renderer.render(c, pose)
         return photo, res.rgb, res.valid, c.width / cam.width
-
-
-def _find_model(project) -> Path:
-    """The project's model: model/reference.obj, else its tiled model (built: project.toml [model]
-    tiled; imported: [imports.model]), else the only mesh in model/."""
-    paths = project.paths
-    p = paths.model / "reference.obj"
-    if p.is_file():
-        return p
-    tiled = project.config.get("model", {}).get("tiled")
-    if tiled and (paths.root / tiled).is_dir():
-        return paths.root / tiled
-    imported = project.config.get("imports", {}).get("model", {})
-    if imported.get("format") == "tiled" and Path(imported.get("source", "")).exists():
-        return Path(imported["source"])
-    from ..io.mesh import MESH_SUFFIXES
-
-    found = sorted(q for q in paths.model.glob("*") if q.suffix.lower() in MESH_SUFFIXES) \
-        if paths.model.is_dir() else []
-    if not found:
-        raise GtkitError("no reference model (model/reference.obj or a tiled model) in the project", paths.model)
-    return found[0]
 
 
 def overlay_file_name(image: str, mode: str) -> str:
