@@ -192,14 +192,15 @@ def test_db_views_without_depth_fail_the_query_and_the_run_goes_on(site):
 def test_dask_local_cluster_renders_and_localizes_like_local_processes(site):
     pytest.importorskip("dask.distributed")
     out = site / "work" / "render_db"
-    views = [v for v in json.loads((out / "views.json").read_text())["views"] if v["kept"]][:2]
+    vj = json.loads((out / "views.json").read_text())
+    views = [v for v in vj["views"] if v["kept"]][:2]
     before = [database.read_depth(out / "depth" / f"{v['name']}.npz") for v in views]
     ex = make_executor(ExecutorSettings("dask", 2))   # two spawned worker processes, one GL context each
     try:
         from dataclasses import asdict
 
         fields = ("name", "height", "paper_pitch", "yaw", "pitch", "roll", "center")
-        tasks = [(str(site), asdict(_db_settings()), [{k: v[k] for k in fields}]) for v in views]
+        tasks = [(str(site), asdict(_db_settings()), [{k: v[k] for k in fields}], vj["ground_level_z"]) for v in views]
         res = run_map(ex, database._render_chunk, tasks)
     finally:
         ex.close()

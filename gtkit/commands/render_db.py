@@ -22,6 +22,11 @@ def register(sub):
     p.add_argument("--hfov", type=float, default=S.hfov_deg, help="horizontal FOV, deg (default %(default)s)")
     p.add_argument("--min-valid", type=float, default=S.min_valid_fraction,
                    help="drop views seeing less of the model than this share (default %(default)s)")
+    p.add_argument("--texture-detail", choices=("views", "stored"), default=S.texture_detail,
+                   help="views: textures finer than the views can show are halved on load; stored: as "
+                        "stored (default %(default)s)")
+    p.add_argument("--tile-budget-mb", type=float, default=S.tile_budget_mb,
+                   help="memory for resident tiles of a tiled model, MB (default %(default)s)")
     _executor_args(p)
     p.add_argument("--force", action="store_true", help="re-render even when up to date")
     p.set_defaults(func=run)
@@ -50,6 +55,7 @@ def run(args):
         raise GtkitError(f"--size must be WxH, got {args.size!r}") from None
     s = database.RenderDbSettings(heights=args.heights, intervals=args.intervals, paper_pitches=args.pitches,
                                   yaw_step=args.yaw_step, width=w, height=h, hfov_deg=args.hfov,
-                                  min_valid_fraction=args.min_valid)
+                                  min_valid_fraction=args.min_valid, texture_detail=args.texture_detail,
+                                  tile_budget_mb=args.tile_budget_mb)
     out = database.run(args.project, s, executor_settings(args), force=args.force)
     print(f"database: {out}")

@@ -70,6 +70,10 @@ class RenderDbSettings:
     # cost 2x a view on average and up to 50x on views of facades with stretched texture
     # coordinates, the site-dependent stalls of render-db (see gtkit.render.renderer.Renderer).
     texture_anisotropy: float = 1.0
+    # "views": a texture finer than any planned view can show is halved as it is loaded (the levels a
+    # view never samples; gtkit.render.texture_detail), so a photo-built model's full-resolution
+    # textures do not fill the tile budget; "stored": textures as stored.
+    texture_detail: str = "views"
 
 
 # Settings that only choose *which* views exist or are kept, never what a view of a given name looks
@@ -102,12 +106,28 @@ PART_SELECTORS: dict[str, Callable] = {"all": _all_parts}
 _WORKER: dict = {}
 
 
-def open_model(root: Path, model: str, frame, tile_budget_mb: float = 512.0, anisotropy: float = 8.0):
+def open_model(root: Path, model: str, frame, tile_budget_mb: float = 512.0, anisotropy: float = 8.0,
+               detail=None):
     """A renderer for the project's model ``model`` (relative to ``root``): see
     :func:`gtkit.render.tiles.open_renderer`."""
     from ..render.tiles import open_renderer
 
-    return open_renderer(Path(root) / model, frame, tile_budget_mb, anisotropy)
+    return open_renderer(Path(root) / model, frame, tile_budget_mb, anisotropy, detail)
+
+
+TEXTURE_DETAILS = ("views", "stored")
+
+
+def view_detail(s: "RenderDbSettings", ground_z: float):
+    """The texture detail the database views can show (None: textures as stored)."""
+    if s.texture_detail not in TEXTURE_DETAILS:
+        raise GtkitError(f"render-db texture_detail must be one of {', '.join(TEXTURE_DETAILS)}, "
+                         f"got {s.texture_detail!r}")
+    if s.texture_detail == "stored":
+        return None
+    from ..render.texture_detail import TextureDetail
+
+    return TextureDetail.for_views(db_camera(s), ground_z + min(s.heights))
 
 
 def model_bounds(r) -> np.ndarray:
@@ -136,13 +156,14 @@ def model_fingerprint(root: Path, model: str) -> str:
     return file_fingerprint(path)
 
 
-def _renderer_for(root: str, s: "RenderDbSettings"):
-    key = (root, s.model, s.tile_budget_mb, s.texture_anisotropy)
+def _renderer_for(root: str, s: "RenderDbSettings", ground_z: float):
+    detail = view_detail(s, ground_z)
+    key = (root, s.model, s.tile_budget_mb, s.texture_anisotropy, detail)
     if _WORKER.get("key") != key:
         if "renderer" in _WORKER:
             _WORKER.pop("renderer").release()
         _WORKER["renderer"] = open_model(Path(root), s.model, Project.load(root).frame, s.tile_budget_mb,
-                                         s.texture_anisotropy)
+                                         s.texture_anisotropy, detail)
         _WORKER["key"] = key
     return _WORKER["renderer"]
 
@@ -152,9 +173,9 @@ def _render_chunk(task) -> list[tuple[str, float]]:
     the depth file last, so an existing depth file means the view is complete."""
     import cv2
 
-    root, settings_d, views = task
+    root, settings_d, views, ground_z = task
     s = RenderDbSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings_d.items()})
-    r = _renderer_for(root, s)
+    r = _renderer_for(root, s, ground_z)
     cam = db_camera(s)
     probe = cam.scaled(PROBE_SCALE)
     out = Path(root) / "work" / STAGE
@@ -254,6 +275,7 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
             shutil.rmtree(out / sub, ignore_errors=True)
         for f in ("views.json", "poses.txt", "intrinsics.txt", "stage.json"):
             (out / f).unlink(missing_ok=True)
+    view_detail(settings, 0.0)                   # an unknown texture_detail is refused before any work
     write_json(sfile, sd)
     views, info = plan_views(project, settings)
     fractions: dict[str, float] = {}
@@ -267,7 +289,8 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
     log.info("render-db: %d views planned, %d already on disk, %d to render", len(views), len(fractions), len(todo))
     t0 = time.perf_counter()
     if todo:
-        tasks = [(str(P.root), asdict(settings), [v.as_dict() for v in todo[i:i + chunk]])
+        g = info["ground_level_z"]
+        tasks = [(str(P.root), asdict(settings), [v.as_dict() for v in todo[i:i + chunk]], g)
                  for i in range(0, len(todo), chunk)]
         ex = make_executor(executor)
         try:

@@ -28,6 +28,7 @@ from ..errors import GtkitError
 from ..io.tiled import TiledModel, is_tiled
 from ..pose import Pose
 from .renderer import NO_LIGHT, Lighting, Renderer, RenderResult
+from .texture_detail import TextureDetail, coarsen
 
 log = logging.getLogger(__name__)
 
@@ -100,8 +101,9 @@ class TileStreamer:
     """Render views of a :class:`TiledModel`, keeping only the tiles in use on the GPU."""
 
     def __init__(self, model: TiledModel, budget_mb: float = 512.0, renderer: Renderer | None = None,
-                 procedural_glsl: str | None = None):
+                 procedural_glsl: str | None = None, detail: TextureDetail | None = None):
         self.model = model
+        self.detail = detail
         self.budget = int(budget_mb * 2**20)
         self.renderer = renderer or Renderer()
         self.glsl = procedural_glsl
@@ -136,6 +138,7 @@ class TileStreamer:
             if r is None:
                 t0 = time.perf_counter()
                 mesh = self.model.load_tile(n)
+                mesh.parts = [coarsen(p, self.detail) for p in mesh.parts]
                 r = _Resident(self.renderer.add_mesh(mesh, self.glsl, origin=self.origin), _part_bytes(mesh))
                 del mesh
                 self._resident[n] = r
@@ -231,23 +234,26 @@ class TileStreamer:
         self._resident.clear()
 
 
-def open_renderer(path, frame, tile_budget_mb: float = 512.0, anisotropy: float = 8.0):
+def open_renderer(path, frame, tile_budget_mb: float = 512.0, anisotropy: float = 8.0,
+                  detail: TextureDetail | None = None):
     """What draws a model: for a tiled model (its folder or ``metadata.xml``) a :class:`TileStreamer`
     that uploads only the tiles each view sees (resident tiles under ``tile_budget_mb``); for a mesh
     file a :class:`Renderer` holding all of it, an OBJ read by numpy and uploaded a material (one
     texture) at a time (:func:`gtkit.io.mesh.model_parts`). Both offer ``render``, ``render_ortho``,
-    ``release``."""
+    ``release``. ``detail``: textures finer than those views can show are halved as they are loaded
+    (:mod:`gtkit.render.texture_detail`); None keeps them as stored."""
     from pathlib import Path
 
     path = Path(path)
     if is_tiled(path):
         from ..io.tiled import read_tiled
 
-        return TileStreamer(read_tiled(path, frame), budget_mb=tile_budget_mb, renderer=Renderer(anisotropy=anisotropy))
+        return TileStreamer(read_tiled(path, frame), budget_mb=tile_budget_mb, renderer=Renderer(anisotropy=anisotropy),
+                            detail=detail)
     if not path.is_file():
         raise GtkitError("reference model not found (expected model/reference.obj or a tiled model folder)", path)
     from ..io.mesh import model_parts
 
     r = Renderer(anisotropy=anisotropy)
-    r.add_parts(model_parts(path, frame))
+    r.add_parts(coarsen(p, detail) for p in model_parts(path, frame))
     return r
