@@ -317,6 +317,10 @@ def _split_part(p: MeshPart, fi: np.ndarray, texture: str, align: int, margin: i
                 tex = tex[y0:y1, x0:x1]
                 uv = np.stack([(px - x0) / (x1 - x0), 1.0 - (py - y0) / (y1 - y0)], -1)
         sub.uv, sub.texture = uv, tex
+        if texture == "pack":
+            from .texture_atlas import pack_charts
+
+            sub = pack_charts(sub)
     return sub
 
 
@@ -396,7 +400,9 @@ def write_tiled(mesh: Mesh, out_dir: str | Path, crs: str, offset=(0.0, 0.0, 0.0
     to the tile holding its centroid, on a grid of ``tile_size`` metres from ``grid_origin``
     (stored coordinates). ``texture="crop"`` gives each tile only the part of each texture its
     triangles use (aligned to ``align`` texels, ``margin`` texels of context), so a tile's memory
-    is its own; ``"share"`` keeps whole textures (more memory and disk).
+    is its own; ``"share"`` keeps whole textures (more memory and disk); ``"pack"`` gives each tile
+    a page of just the charts its triangles use (:func:`gtkit.io.texture_atlas.pack_charts`: for
+    textures whose faces are scattered, as a photo-built model's are).
 
     Fidelity (measured, see tests/test_import_tiled.py and the issue-9 report): geometry and depth
     render bit-identically in both modes (with ``TileStreamer``'s shared upload origin); colours are
@@ -409,8 +415,8 @@ def write_tiled(mesh: Mesh, out_dir: str | Path, crs: str, offset=(0.0, 0.0, 0.0
     says otherwise.
     Returns the output folder.
     """
-    if texture not in ("crop", "share"):
-        raise GtkitError(f"texture mode must be 'crop' or 'share', got {texture!r}")
+    if texture not in ("crop", "share", "pack"):
+        raise GtkitError(f"texture mode must be 'crop', 'share' or 'pack', got {texture!r}")
     if not (tile_size > 0):
         raise GtkitError(f"tile size must be positive, got {tile_size}")
     from ..geo import parse_crs

@@ -297,7 +297,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     if n_tiles > 1:     # a large site: also the tiled model (ContextCapture layout), for memory-bounded readers
         from ..io.tiled import write_tiled
 
-        write_tiled(mesh, tiles, project.frame.crs_spec, project.frame.origin, settings.tile_m)
+        write_tiled(mesh, tiles, project.frame.crs_spec, project.frame.origin, settings.tile_m, texture="pack")
         project.config["model"]["tiled"] = str(tiles.relative_to(P.root))
         project.save()
     del mesh, parts

@@ -4,7 +4,8 @@ Visibility comes from gtkit's moderngl renderer (the untextured surface's depth 
 photo); a face is seen when its centre projects inside the photo, in front of it and not hidden
 by nearer surface. Among the photos that see it, the face takes the one with the most texels on
 it (``cos(angle) * (f / distance)^2``). The mesh is then split by photo: each part's texture is the
-crop of its (undistorted) photo that its faces cover, its uv the faces' projection into it. A face
+texels of its (undistorted) photo that its faces cover, packed chart by chart into one page
+(:mod:`gtkit.io.texture_atlas`), its uv the faces' projection into it. A face
 that no photo sees takes the best photo regardless of occlusion (it is inside trimmed support, so
 rare).
 
@@ -21,6 +22,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..io.mesh import Mesh, MeshPart
+from ..io.texture_atlas import pack_charts
 from .views import View
 
 
@@ -231,7 +233,9 @@ def seam_difference(sc: dict, gains: np.ndarray | None = None) -> float:
 def textured_parts(V: np.ndarray, F: np.ndarray, views: dict[str, View], names: list[str], best: np.ndarray,
                    load_rgb, pad: int = 2, gains: np.ndarray | None = None) -> list[MeshPart]:
     """One textured part per photo that textures any face (``load_rgb(view)`` gives its undistorted RGB;
-    ``gains`` (per photo, per channel) multiply its texture)."""
+    ``gains`` (per photo, per channel) multiply its texture). Each part's texture is a page of the
+    charts its faces use (:func:`gtkit.io.texture_atlas.pack_charts`), not the box around them,
+    which is nearly the whole photo when the faces a photo sees best are scattered over it."""
     parts = []
     order = np.argsort(best, kind="stable")                  # faces grouped by photo (one pass, not one a photo)
     keys = best[order]
@@ -254,8 +258,8 @@ def textured_parts(V: np.ndarray, F: np.ndarray, views: dict[str, View], names: 
             img = np.clip(img * gains[k] + 0.5, 0, 255).astype(np.uint8)
         cw, ch = x1 - x0, y1 - y0
         tuv = np.stack([(uv[:, 0] + 0.5 - x0) / cw, 1.0 - (uv[:, 1] + 0.5 - y0) / ch], 1)
-        parts.append(MeshPart(V[used], local, uv=tuv, texture=np.ascontiguousarray(img),
-                              name=v.name.replace("/", "_").rsplit(".", 1)[0]))
+        parts.append(pack_charts(MeshPart(V[used], local, uv=tuv, texture=np.ascontiguousarray(img),
+                                          name=v.name.replace("/", "_").rsplit(".", 1)[0])))
     unseen = F[best < 0]
     if len(unseen):
         used = np.unique(unseen)
