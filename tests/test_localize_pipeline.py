@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from gtkit.cli import main
+from gtkit.errors import GtkitError
 from gtkit.io.poses import read_poses
 from gtkit.localize import database, localize
 from gtkit.localize.executors import ExecutorSettings, make_executor, run_map
@@ -200,7 +201,8 @@ def test_dask_local_cluster_renders_and_localizes_like_local_processes(site):
         from dataclasses import asdict
 
         fields = ("name", "height", "paper_pitch", "yaw", "pitch", "roll", "center")
-        tasks = [(str(site), asdict(_db_settings()), [{k: v[k] for k in fields}], vj["ground_level_z"]) for v in views]
+        tasks = [(str(site), asdict(_db_settings()), [{k: v[k] for k in fields}], vj["ground_level_z"],
+                  json.loads((out / "settings.json").read_text())) for v in views]
         res = run_map(ex, database._render_chunk, tasks)
     finally:
         ex.close()
@@ -257,3 +259,28 @@ def test_tiled_model_renders_the_same_database_views(site):
             assert len(r.resident) < 12                      # only part of the 15 tiles is on the GPU
     finally:
         r.release()
+
+
+def test_a_worker_of_a_stopped_or_superseded_run_writes_no_view(site):
+    """render-db's workers check, before writing each view, that the database's settings.json is still
+    the record their run planned under: the workers of a killed run (they go on without their parent)
+    or of a run whose settings another run changed must not put views of another model into the folder
+    (measured: a killed run's orphaned workers wrote 8 views into the next run's cleared database)."""
+    from dataclasses import asdict
+
+    out = site / "work" / "render_db"
+    vj = json.loads((out / "views.json").read_text())
+    v = next(v for v in vj["views"] if v["kept"])
+    fields = ("name", "height", "paper_pitch", "yaw", "pitch", "roll", "center")
+    record = json.loads((out / "settings.json").read_text())
+    stale = {**record, "settings": {**record["settings"], "model": "model/another.obj"}}
+    depth = out / "depth" / f"{v['name']}.npz"
+    before = depth.stat().st_mtime_ns
+    task = (str(site), asdict(_db_settings()), [{k: v[k] for k in fields}], vj["ground_level_z"], stale)
+    with pytest.raises(GtkitError, match="settings changed while rendering"):
+        database._render_chunk(task)
+    assert depth.stat().st_mtime_ns == before
+    # the current record renders and writes the view again, the same depth
+    d0 = database.read_depth(depth)
+    assert database._render_chunk(task[:4] + (record,))[0][0] == v["name"]
+    assert np.array_equal(database.read_depth(depth), d0, equal_nan=True)

@@ -168,17 +168,35 @@ def _renderer_for(root: str, s: "RenderDbSettings", ground_z: float):
     return _WORKER["renderer"]
 
 
+def _check_current(out: Path, record: dict | None) -> None:
+    """Refuse to write a view when the database's ``settings.json`` is no longer the record the view
+    was planned under: a run stopped while its workers went on (their parent killed), or another
+    render-db run that changed the settings and cleared the views, must not get views of another
+    model or settings mixed into its folder."""
+    if record is None:
+        return
+    try:
+        now = json.loads((out / "settings.json").read_text())
+    except (OSError, ValueError):
+        now = None
+    if now != record:
+        raise GtkitError("render-db settings changed while rendering (another render-db run, or this "
+                         "run was stopped): this worker stops without writing", out / "settings.json")
+
+
 def _render_chunk(task) -> list[tuple[str, float]]:
     """Render a list of views; returns (name, valid fraction) for each. Writes files atomically,
-    the depth file last, so an existing depth file means the view is complete."""
+    the depth file last, so an existing depth file means the view is complete. ``task``'s last item
+    is the database's view record (``settings.json``), checked before each view is written."""
     import cv2
 
-    root, settings_d, views, ground_z = task
+    root, settings_d, views, ground_z, record = task
     s = RenderDbSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings_d.items()})
+    out = Path(root) / "work" / STAGE
+    _check_current(out, record)
     r = _renderer_for(root, s, ground_z)
     cam = db_camera(s)
     probe = cam.scaled(PROBE_SCALE)
-    out = Path(root) / "work" / STAGE
     res = []
     for vd in views:
         v = View(**{**vd, "center": tuple(vd["center"])})
@@ -187,6 +205,7 @@ def _render_chunk(task) -> list[tuple[str, float]]:
         if frac >= s.min_valid_fraction - PROBE_MARGIN:
             rr = render_view(r, cam, v, s.parts)
             frac = float(np.isfinite(rr.depth).mean())
+        _check_current(out, record)
         if frac >= s.min_valid_fraction:
             with atomic_path(out / "images" / f"{v.name}.jpg") as tmp:
                 cv2.imwrite(str(tmp), cv2.cvtColor(rr.rgb, cv2.COLOR_RGB2BGR),
@@ -290,7 +309,8 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
     t0 = time.perf_counter()
     if todo:
         g = info["ground_level_z"]
-        tasks = [(str(P.root), asdict(settings), [v.as_dict() for v in todo[i:i + chunk]], g)
+        record = json.loads(sfile.read_text())
+        tasks = [(str(P.root), asdict(settings), [v.as_dict() for v in todo[i:i + chunk]], g, record)
                  for i in range(0, len(todo), chunk)]
         ex = make_executor(executor)
         try:
