@@ -55,6 +55,7 @@ def apply_overrides(settings, overrides: dict, where: str, source=None):
     """A copy of ``settings`` with ``overrides`` (nested dicts for nested dataclasses) applied."""
     out = copy.deepcopy(settings)
     names = {f.name for f in dataclasses.fields(out)}
+    changes = {}
     for key, value in (overrides or {}).items():
         if key not in names:
             raise GtkitError(f"unknown setting {where}.{key} (known: {', '.join(sorted(names))})", source)
@@ -62,10 +63,10 @@ def apply_overrides(settings, overrides: dict, where: str, source=None):
         if dataclasses.is_dataclass(cur):
             if not isinstance(value, dict):
                 raise GtkitError(f"{where}.{key} must be a table ([{where}.{key}])", source)
-            setattr(out, key, apply_overrides(cur, value, f"{where}.{key}", source))
+            changes[key] = apply_overrides(cur, value, f"{where}.{key}", source)
         else:
-            setattr(out, key, _coerce(value, cur, f"{where}.{key}", source))
-    return out
+            changes[key] = _coerce(value, cur, f"{where}.{key}", source)
+    return dataclasses.replace(out, **changes) if changes else out   # frozen settings too
 
 
 def _nest(flat: dict) -> dict:

@@ -284,3 +284,28 @@ def test_a_worker_of_a_stopped_or_superseded_run_writes_no_view(site):
     d0 = database.read_depth(depth)
     assert database._render_chunk(task[:4] + (record,))[0][0] == v["name"]
     assert np.array_equal(database.read_depth(depth), d0, equal_nan=True)
+
+
+def test_render_db_and_localize_settings_come_from_the_command_line_then_project_toml(tmp_path, capsys):
+    """`gtkit render-db` and `gtkit localize` resolve their settings like every stage: flag >
+    project.toml [render_db] / [localize] > default (for localize, the ablation's settings first)."""
+    from gtkit.geo import GeoFrame
+    from gtkit.project import Project
+
+    proj = Project.create(tmp_path / "site", GeoFrame("EPSG:32650", (500000.0, 3300000.0, 0.0)))
+    root = str(proj.paths.root)
+    proj.config["render_db"] = {"texture_detail": "sharp"}
+    proj.save()
+    assert main(["render-db", root]) == 2
+    err = capsys.readouterr().err
+    assert "texture_detail must be one of views, stored, got 'sharp'" in err and err.count("\n") == 1
+    assert main(["render-db", root, "--texture-detail", "stored"]) == 2       # the flag wins: on to the model
+    assert "reference model not found" in capsys.readouterr().err
+    proj.config["render_db"] = {"heigths": [100.0]}
+    proj.save()
+    assert main(["render-db", root]) == 2
+    assert "unknown setting render_db.heigths" in capsys.readouterr().err
+    proj.config["localize"] = {"top_kk": 5}
+    proj.save()
+    assert main(["localize", root]) == 2
+    assert "unknown setting localize.top_kk" in capsys.readouterr().err

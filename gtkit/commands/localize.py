@@ -19,14 +19,14 @@ def register(sub):
 
 
 def run(args):
-    import dataclasses
-
     from ..localize import localize
+    from ..project import Project
+    from ..settings import resolve
     from .render_db import executor_settings
 
-    s = localize.settings_for(args.ablation)
-    over = {k: v for k, v in (("top_k", args.top_k), ("gps_radius_m", args.gps_radius),
-                              ("query_glob", args.queries)) if v is not None}
-    s = dataclasses.replace(s, **over)
-    out = localize.run(args.project, s, ablation=args.ablation, executor=executor_settings(args), force=args.force)
+    # the ablation's settings < project.toml [localize] < the flags given (gtkit.settings.resolve)
+    project = Project.load(args.project)
+    s = resolve(localize.settings_for(args.ablation), "localize", project,
+                {"top_k": args.top_k, "gps_radius_m": args.gps_radius, "query_glob": args.queries})
+    out = localize.run(project, s, ablation=args.ablation, executor=executor_settings(args), force=args.force)
     print(f"poses: {out / 'poses.txt'}  status: {out / 'status.json'}")

@@ -11,22 +11,23 @@ def register(sub):
 
     p = sub.add_parser("render-db", help="render the localization database over the reference model")
     p.add_argument("project")
-    p.add_argument("--heights", type=_floats, default=S.heights,
-                   help="heights above the model's ground level, m (default %(default)s)")
-    p.add_argument("--intervals", type=_floats, default=S.intervals,
-                   help="grid interval per height, m (default %(default)s)")
-    p.add_argument("--pitches", type=_floats, default=S.paper_pitches,
-                   help="paper pitches from nadir: 0 = DJI -90, 45 = DJI -45 (default %(default)s)")
-    p.add_argument("--yaw-step", type=float, default=S.yaw_step, help="deg (default %(default)s)")
-    p.add_argument("--size", default=f"{S.width}x{S.height}", help="view size WxH (default %(default)s)")
-    p.add_argument("--hfov", type=float, default=S.hfov_deg, help="horizontal FOV, deg (default %(default)s)")
-    p.add_argument("--min-valid", type=float, default=S.min_valid_fraction,
-                   help="drop views seeing less of the model than this share (default %(default)s)")
-    p.add_argument("--texture-detail", choices=("views", "stored"), default=S.texture_detail,
+    # flags left out take project.toml [render_db], then RenderDbSettings' defaults (gtkit.settings.resolve)
+    p.add_argument("--heights", type=_floats, default=None,
+                   help=f"heights above the model's ground level, m (default {S.heights})")
+    p.add_argument("--intervals", type=_floats, default=None,
+                   help=f"grid interval per height, m (default {S.intervals})")
+    p.add_argument("--pitches", type=_floats, default=None,
+                   help=f"paper pitches from nadir: 0 = DJI -90, 45 = DJI -45 (default {S.paper_pitches})")
+    p.add_argument("--yaw-step", type=float, default=None, help=f"deg (default {S.yaw_step})")
+    p.add_argument("--size", default=None, help=f"view size WxH (default {S.width}x{S.height})")
+    p.add_argument("--hfov", type=float, default=None, help=f"horizontal FOV, deg (default {S.hfov_deg})")
+    p.add_argument("--min-valid", type=float, default=None,
+                   help=f"drop views seeing less of the model than this share (default {S.min_valid_fraction})")
+    p.add_argument("--texture-detail", choices=("views", "stored"), default=None,
                    help="views: textures finer than the views can show are halved on load; stored: as "
-                        "stored (default %(default)s)")
-    p.add_argument("--tile-budget-mb", type=float, default=S.tile_budget_mb,
-                   help="memory for resident tiles of a tiled model, MB (default %(default)s)")
+                        f"stored (default {S.texture_detail})")
+    p.add_argument("--tile-budget-mb", type=float, default=None,
+                   help=f"memory for resident tiles of a tiled model, MB (default {S.tile_budget_mb})")
     _executor_args(p)
     p.add_argument("--force", action="store_true", help="re-render even when up to date")
     p.set_defaults(func=run)
@@ -48,14 +49,20 @@ def executor_settings(args):
 def run(args):
     from ..errors import GtkitError
     from ..localize import database
+    from ..project import Project
+    from ..settings import resolve
 
-    try:
-        w, h = (int(v) for v in args.size.lower().split("x"))
-    except ValueError:
-        raise GtkitError(f"--size must be WxH, got {args.size!r}") from None
-    s = database.RenderDbSettings(heights=args.heights, intervals=args.intervals, paper_pitches=args.pitches,
-                                  yaw_step=args.yaw_step, width=w, height=h, hfov_deg=args.hfov,
-                                  min_valid_fraction=args.min_valid, texture_detail=args.texture_detail,
-                                  tile_budget_mb=args.tile_budget_mb)
-    out = database.run(args.project, s, executor_settings(args), force=args.force)
+    w = h = None
+    if args.size is not None:
+        try:
+            w, h = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            raise GtkitError(f"--size must be WxH, got {args.size!r}") from None
+    project = Project.load(args.project)
+    s = resolve(database.RenderDbSettings(), "render_db", project, {
+        "heights": args.heights, "intervals": args.intervals, "paper_pitches": args.pitches,
+        "yaw_step": args.yaw_step, "width": w, "height": h, "hfov_deg": args.hfov,
+        "min_valid_fraction": args.min_valid, "texture_detail": args.texture_detail,
+        "tile_budget_mb": args.tile_budget_mb})
+    out = database.run(project, s, executor_settings(args), force=args.force)
     print(f"database: {out}")

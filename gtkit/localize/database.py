@@ -279,6 +279,7 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
         executor: ExecutorSettings = ExecutorSettings(), chunk: int = 8, force: bool = False) -> Path:
     """Render the database; returns its folder. Resumes view by view when settings match."""
     project = project if isinstance(project, Project) else Project.load(project)
+    view_detail(settings, 0.0)                   # an unknown texture_detail is refused before any work
     P = project.paths
     out = P.stage(STAGE)
     inputs = {"model": model_fingerprint(P.root, settings.model)}
@@ -294,7 +295,6 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
             shutil.rmtree(out / sub, ignore_errors=True)
         for f in ("views.json", "poses.txt", "intrinsics.txt", "stage.json"):
             (out / f).unlink(missing_ok=True)
-    view_detail(settings, 0.0)                   # an unknown texture_detail is refused before any work
     write_json(sfile, sd)
     views, info = plan_views(project, settings)
     fractions: dict[str, float] = {}
