@@ -109,6 +109,31 @@ def test_settings_resolve_in_one_place(tmp_path):
         resolve(SfmSettings(), "sfm", Project.load(p.paths.root))
 
 
+def test_every_stage_command_reads_its_project_toml_section(tmp_path, capsys):
+    """export, overlay and track resolve like sfm / register / model build / render-db / localize: a
+    misspelt key in their project.toml section is refused by name, before any work."""
+    p = Project.create(tmp_path / "p", GeoFrame("EPSG:32650", (0.0, 0.0, 0.0)))
+    root = str(p.paths.root)
+    for section, key, argv in (("export_dsm", "resolutoin", ["export", "dsm", root]),
+                               ("export_ortho", "cogg", ["export", "ortho", root]),
+                               ("export_mesh", "formats", ["export", "mesh", root]),
+                               ("export_coordinates", "gcps", ["export", "coords", root]),
+                               ("overlay", "max_sides", ["overlay", root]),
+                               ("track", "foot", ["track", root])):
+        p.config[section] = {key: 1}
+        p.save()
+        assert gtkit(argv) == 2, section
+        err = capsys.readouterr().err
+        assert f"unknown setting {section}.{key}" in err and err.count("\n") == 1, err
+    p.config["export_dsm"] = {"fill_holes": 0, "cog": True}
+    p.save()
+    from gtkit.commands.export import _settings
+    from gtkit.export.dsm import DsmSettings
+
+    s = _settings(DsmSettings(), "export_dsm", root, {"resolution": 2.0, "cog": None, "fill_holes": None})
+    assert (s.resolution, s.cog, s.fill_holes) == (2.0, True, 0)
+
+
 # --- gtkit init -----------------------------------------------------------------------------
 
 def test_init_makes_a_project_from_a_folder_of_photos(tiny_sample, tmp_path, capsys):

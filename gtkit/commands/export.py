@@ -42,7 +42,7 @@ def register(sub):
 
     d = ex.add_parser("dsm", help="digital surface model GeoTIFF (highest surface per cell)")
     _source_args(d, raster=True)
-    d.add_argument("--fill-holes", type=int, default=2, help="passes of small-hole filling (0 = none)")
+    d.add_argument("--fill-holes", type=int, default=None, help="passes of small-hole filling (0 = none; default 2)")
     d.set_defaults(func=run_dsm)
 
     o = ex.add_parser("ortho", help="true orthophoto GeoTIFF (RGB + alpha) of the textured model")
@@ -51,7 +51,7 @@ def register(sub):
 
     m = ex.add_parser("mesh", help="textured mesh in the project CRS + offset sidecar")
     _source_args(m, raster=False)
-    m.add_argument("--format", choices=("obj", "ply", "glb"), default="obj")
+    m.add_argument("--format", choices=("obj", "ply", "glb"), default=None, help="default obj")
     m.add_argument("--decimate", type=int, help="target number of triangles (pymeshlab)")
     m.add_argument("--out-dir", help="output folder (default: exports/mesh)")
     m.set_defaults(func=run_mesh)
@@ -65,6 +65,14 @@ def register(sub):
     c.set_defaults(func=run_coords)
 
 
+def _settings(defaults, section: str, project_dir, cli: dict):
+    """Flags given > project.toml [section] (when there is a project) > defaults (gtkit.settings.resolve)."""
+    from ..project import Project
+    from ..settings import resolve
+
+    return resolve(defaults, section, Project.load(project_dir) if project_dir is not None else None, cli)
+
+
 def _need_project_or_out(args):
     from ..errors import GtkitError
 
@@ -76,7 +84,8 @@ def run_dsm(args):
     from ..export import dsm
 
     _need_project_or_out(args)
-    s = dsm.DsmSettings(resolution=args.resolution, cog=args.cog, fill_holes=args.fill_holes)
+    s = _settings(dsm.DsmSettings(), "export_dsm", args.project,
+                  {"resolution": args.resolution, "cog": args.cog or None, "fill_holes": args.fill_holes})
     off = _offset(args.offset) if args.offset else None
     if args.project is None:
         out = dsm.run_file(args.input, args.out, s, args.crs, off)
@@ -89,7 +98,8 @@ def run_ortho(args):
     from ..export import ortho
 
     _need_project_or_out(args)
-    s = ortho.OrthoSettings(resolution=args.resolution, cog=args.cog)
+    s = _settings(ortho.OrthoSettings(), "export_ortho", args.project,
+                  {"resolution": args.resolution, "cog": args.cog or None})
     off = _offset(args.offset) if args.offset else None
     if args.project is None:
         out = ortho.run_file(args.input, args.out, s, args.crs, off)
@@ -104,7 +114,8 @@ def run_mesh(args):
 
     if args.project is None:
         raise GtkitError("gtkit export mesh needs a project folder (its CRS and origin)")
-    s = mesh_export.MeshExportSettings(format=args.format, decimate=args.decimate)
+    s = _settings(mesh_export.MeshExportSettings(), "export_mesh", args.project,
+                  {"format": args.format, "decimate": args.decimate})
     print(mesh_export.run(args.project, s, args.input, args.crs, _offset(args.offset) if args.offset else None,
                           args.out_dir))
 
@@ -112,6 +123,7 @@ def run_mesh(args):
 def run_coords(args):
     from ..export import coordinates
 
-    s = coordinates.CoordinatesSettings(poses=args.poses, targets=args.targets, include_gcps=not args.no_gcps)
+    s = _settings(coordinates.CoordinatesSettings(), "export_coordinates", args.project,
+                  {"poses": args.poses, "targets": args.targets, "include_gcps": False if args.no_gcps else None})
     for path in coordinates.run(args.project, s, args.out_dir).values():
         print(path)

@@ -8,8 +8,9 @@ def register(sub):
     p.add_argument("project")
     p.add_argument("--poses", help="pose file (default: the register stage's pseudo-GT poses)")
     p.add_argument("--out", help="output folder (default: reports/overlays)")
-    p.add_argument("--modes", default="blend,swipe,edges,checker", help="comma-separated overlay modes")
-    p.add_argument("--max-side", type=int, default=1024, help="long side of the overlays in pixels")
+    # flags left out take project.toml [overlay], then OverlaySettings' defaults (gtkit.settings.resolve)
+    p.add_argument("--modes", default=None, help="comma-separated overlay modes (default blend,swipe,edges,checker)")
+    p.add_argument("--max-side", type=int, default=None, help="long side of the overlays in pixels (default 1024)")
     p.add_argument("--images", nargs="*", help="only these images (names relative to images/)")
     p.add_argument("--model", help="model to draw: a mesh file, or a tiled model folder (streamed: only the tiles "
                                    "each photo sees are uploaded) (default: model/reference.obj, else the tiled model)")
@@ -17,9 +18,12 @@ def register(sub):
 
 
 def run(args):
+    from ..project import Project
     from ..render.overlay import OverlaySettings, write_overlays
+    from ..settings import resolve
 
-    st = OverlaySettings(max_side=args.max_side, modes=tuple(m for m in args.modes.split(",") if m))
+    modes = tuple(m for m in args.modes.split(",") if m) if args.modes is not None else None
+    st = resolve(OverlaySettings(), "overlay", Project.load(args.project), {"max_side": args.max_side, "modes": modes})
 
     def progress(k, n, name, a):
         print(f"[{k}/{n}] {name}: misalignment {a.misalignment_px:.2f} px, edge distance {a.edge_distance_px:.2f} px",

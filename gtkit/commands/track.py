@@ -27,7 +27,7 @@ def register(sub):
     p.add_argument("--covariances", default="", help="6x6 pose covariances (default: covariances.txt "
                    "beside the poses, if present; else default sigmas)")
     p.add_argument("--detections", default="", help="CSV or labelme JSON (default: DIR/detections.csv)")
-    p.add_argument("--foot-point", default="centre", choices=("bottom_centre", "centre"),
+    p.add_argument("--foot-point", default=None, choices=("bottom_centre", "centre"),
                    help="how a box gives the ground point: its centre, cast at half the target's height "
                    "above the DSM (default), or its bottom centre")
     p.add_argument("--no-smooth", action="store_true", help="no RTS-smoothed track")
@@ -64,10 +64,14 @@ def run(args):
         print(json.dumps({k: rep[k] for k in ("n_targets", "n_failed", "median_err_h_m", "median_err_3d_m",
                                               "recall_h") if k in rep}, indent=2))
         return 0
+    from ..project import Project
+    from ..settings import resolve
     from ..track.tracker import TrackSettings, run as track
 
-    s = TrackSettings(detections=args.detections, poses=args.poses, covariances=args.covariances,
-                      foot_point=args.foot_point, smooth=not args.no_smooth)
+    # flags given > project.toml [track] > TrackSettings' defaults (gtkit.settings.resolve)
+    s = resolve(TrackSettings(), "track", Project.load(root), {
+        "detections": args.detections or None, "poses": args.poses or None, "covariances": args.covariances or None,
+        "foot_point": args.foot_point, "smooth": False if args.no_smooth else None})
     summary = track(root, s, force=args.force)
     print(json.dumps({k: summary[k] for k in ("n_detections", "n_located", "status", "median_sigma_h_m",
                                               "csv", "geojson")}, indent=2))
