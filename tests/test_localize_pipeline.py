@@ -118,6 +118,23 @@ def test_database_features_resume_after_the_process_is_killed(site, tmp_path):
     t = localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))
     assert 0 < t["db_features_views"] < len(db.views)
     assert localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))["db_features_views"] == 0
+    # the global descriptors: a matrix apart (.npy), memory-mapped by each worker; a cache written before
+    # it was kept apart (G inside the .npz) is converted, not recomputed
+    t = localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))
+    G = np.load(t["global_matrix"], mmap_mode="r")
+    assert isinstance(G, np.memmap) and G.shape == (len(db.views), 64 * 128)
+    with np.load(t["global"]) as z:
+        assert "G" not in z.files and len(z["names"]) == len(db.views)
+        old = {k: z[k] for k in z.files}
+    np.savez(t["global"], G=np.asarray(G), **old)
+    before = np.asarray(G).copy()
+    del G
+    os.unlink(t["global_matrix"])
+    t2 = localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))
+    assert t2["db_global_s"] < 1.0 and np.array_equal(np.load(t2["global_matrix"]), before)
+    ctx = localize._context({"root": str(copy), "settings": localize.settings_dict(localize.LocalizeSettings()),
+                             "features": t2["features"], "global": t2["global"], "global_matrix": t2["global_matrix"]})
+    assert isinstance(ctx["G"], np.memmap)
 
 
 def test_localize_and_evaluate_against_truth(site):

@@ -288,6 +288,18 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
     names = sorted(v.name for v in db.views)
     gkey = settings_key({"names": names, "words": s.vlad_words, "desc": s.descriptor})
     gfile = cache / f"global-{s.descriptor}{s.vlad_words}-{gkey[:8]}.npz"
+    # the descriptor matrix (views x words x 128 float32: 32 KB a view at 64 words, 0.85 GB for 26k
+    # views) is kept apart as .npy, memory-mapped by every worker (one copy in the page cache, not one
+    # a worker); the .npz (codebook, names) is written last and marks the pair complete
+    gmat = gfile.with_name(gfile.stem + "-G.npy")
+    if gfile.is_file() and not gmat.is_file():          # a cache from before the matrix was kept apart
+        with np.load(gfile) as z:
+            G = z["G"] if "G" in z.files else None
+        if G is None:
+            gfile.unlink()
+        else:
+            with atomic_path(gmat) as tmp, open(tmp, "wb") as f:
+                np.save(f, G)
     if not gfile.is_file():
         with h5py.File(feats, "r") as h5:
             rng = np.random.default_rng(0)
@@ -302,11 +314,13 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
             vlad = Vlad.train(np.concatenate(sample), k=s.vlad_words)
             G = np.concatenate([vlad.describe_many([h5[n]["desc"][()] for n in names[i:i + 64]])
                                 for i in range(0, len(names), 64)]).astype(np.float32)
+        with atomic_path(gmat) as tmp, open(tmp, "wb") as f:
+            np.save(f, G)
         with atomic_path(gfile) as tmp, open(tmp, "wb") as f:
-            np.savez(f, centers=vlad.centers, G=G, names=np.array(names))
+            np.savez(f, centers=vlad.centers, names=np.array(names))
     times["db_global_s"] = time.perf_counter() - t0
     times["db_global_cpu_s"] = time.process_time() - c0
-    return {"cache": str(cache), "features": str(feats), "global": str(gfile), **times}
+    return {"cache": str(cache), "features": str(feats), "global": str(gfile), "global_matrix": str(gmat), **times}
 
 
 # --- per query (runs in workers) ------------------------------------------------------------
@@ -330,9 +344,11 @@ def _context(ctx: dict):
         g = np.load(ctx["global"])
         index = {n: i for i, n in enumerate(g["names"].tolist())}
         rows = np.array([index[v.name] for v in db.views], dtype=int)
+        G = np.load(ctx["global_matrix"], mmap_mode="r")
+        G = G if np.array_equal(rows, np.arange(len(G))) else np.ascontiguousarray(G[rows])   # a subset: a copy
         if "h5" in _W:
             _W["h5"].close()
-        _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=g["G"][rows],
+        _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=G,
                   ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
                   centers=np.array([v.pose.center for v in db.views]).reshape(-1, 3),
                   look_at=_view_look_at(db), ground=_ground_level(db),
@@ -590,7 +606,7 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
         raise GtkitError("the database subset chosen by the settings is empty", dbdir)
     offline = prepare_database(project, db_full, settings, executor)
     ctx = {"root": str(project.paths.root), "settings": settings_dict(settings),
-           "features": offline["features"], "global": offline["global"]}
+           "features": offline["features"], "global": offline["global"], "global_matrix": offline["global_matrix"]}
     t0 = time.perf_counter()
     ex = make_executor(executor)
     try:
