@@ -1,11 +1,11 @@
 """Texture detail a set of views can show: textures finer than that are halved when they are loaded.
 
-A photo-built model (``gtkit model build``) is textured with crops of the full-size photos (2-3 cm
-texels on the samples), while a 640 x 480 database view from 100 m above the ground sees 10-30 cm
-a pixel. The texture levels finer than a view's pixel are never sampled (mipmapping picks the level
-whose texel matches the pixel's footprint), yet they are read, decoded, uploaded and held: on the
-medium sample's built model a database view needed 827 MB of tiles, above the streamer's 512 MB
-budget, so tiles were evicted and read again for every view.
+A 640 x 480 database view from 100 m above the ground sees 10-30 cm a pixel. Texture levels finer
+than a view's pixel are never sampled (mipmapping picks the level whose texel matches the pixel's
+footprint), yet they are read, decoded, uploaded and held. A model textured from full-size photos
+at 2-3 cm carries 2 such levels; the samples' and Brighton Beach's built models (0.18 and 0.065 m
+texels) carry none, so on them nothing is halved (their tile memory was the texture boxes, see
+:mod:`gtkit.io.texture_atlas`).
 
 The finest footprint a pixel has on a surface ``d`` metres away is ``d * cos(t)**2 / f`` (``t`` the
 ray's angle off the optical axis, ``f`` the focal length in pixels: the pixel's angular size along
