@@ -42,16 +42,17 @@ from .srs import SrsToWorld, srs_key
 log = logging.getLogger(__name__)
 
 METADATA = "metadata.xml"
-
-
-def is_tiled(path: Path) -> bool:
-    """A tiled model is given as its folder or its ``metadata.xml``."""
-    return Path(path).is_dir() or Path(path).name == METADATA
 INDEX = "tiles_index.json"
 INDEX_VERSION = 1
 _TILE_DIR = re.compile(r"^Tile_[-+]\d+_[-+]\d+")
 _LOD = re.compile(r"_L(\d+)(?:_\d+)?$")
 _V_LINE = re.compile(rb"^v[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)", re.MULTILINE)
+
+
+def is_tiled(path: Path) -> bool:
+    """A tiled model is given as its folder or its ``metadata.xml``."""
+    path = Path(path)
+    return path.is_dir() or path.name == METADATA
 
 
 # --- metadata.xml ---------------------------------------------------------------------------
