@@ -72,23 +72,13 @@ def test_features_and_matching_on_a_dask_cluster_give_the_local_database_and_pos
     here = run("here", None)
     a, pa, na = here
     assert na == 45 and sum(len(k) for k in a["keypoints"].values()) > 45 * 300 and len(a["matches"]) > 100
-    # The features are identical. The matches were identical in 20 of 22 runs on the development
-    # machine but, on a fresh CI checkout, the same few pairs (R01_* with R03_001_*) matched differently
-    # in every Dask run (COLMAP's CPU matcher runs FAISS; each Dask task matches in a database of its
-    # own photos); the cause was not isolated. So: every difference listed; features exact; at most
-    # 3 % of the pairs matched differently (CI: 4 of 399), each sharing >= half its matches; the rest identical.
+    # Identical, not nearly: COLMAP's matcher runs on one thread a process everywhere (two matcher
+    # threads in one process re-matched a few pairs differently in about one run in 15, which is
+    # what made this test differ by 4 of 399 pairs in some CI runs; see database.match_pairs).
     b, pb, nb = run("dask", ExecutorSettings("dask", 2))
     problems = _differences(a, b, pa, pb, na, nb)
-    print(f"dask vs in-process: {len(a['matches'])} matched pairs, {sum(p.startswith('matches') for p in problems)} matched differently; differences: {problems or 'none'}")
-    assert not [p for p in problems if p.startswith(("image ids", "features", "the matched pairs", "registered"))]
-    differ = [k for k in a["matches"] if not np.array_equal(a["matches"][k], b["matches"][k])]
-    for k in differ:
-        sa, sb = ({tuple(m) for m in x["matches"][k]} for x in (a, b))
-        assert len(sa & sb) >= 0.5 * max(len(sa), len(sb)), (k, len(sa), len(sb), len(sa & sb))
-    assert len(differ) <= 0.03 * len(a["matches"])
-    assert not [p for p in problems if p.startswith("two-view") and not any(str(k) in p for k in differ)]
-    diff = max(float(np.linalg.norm(pa[n].center - pb[n].center)) for n in pa)
-    assert diff < (1e-5 if not differ else 0.05)
+    print(f"dask vs in-process: {len(a['matches'])} matched pairs; differences: {problems or 'none'}")
+    assert not problems, problems
 
 
 def test_an_unknown_mapper_is_one_clear_error_before_any_work(tiny_sample, tmp_path):
