@@ -146,36 +146,61 @@ def _pnp(pose: Pose, cam: Camera, X: np.ndarray, uv: np.ndarray, px: float) -> t
     return Pose(cv2.Rodrigues(rvec)[0], tvec.ravel()), mask
 
 
+def match_photo(pose: Pose, cam: Camera, kq: np.ndarray, dq: np.ndarray, ref: ReferencePoints,
+                s: CrossMatchSettings) -> tuple[Pose | None, np.ndarray, np.ndarray]:
+    """One query photo (keypoints ``kq``, descriptors ``dq``) matched to the reference points around
+    ``pose``: (the PnP pose of the second pass, reference point rows, query keypoint indices of its
+    inliers); (None, [], []) when either pass keeps fewer than ``s.min_inliers``."""
+    none = (None, np.zeros(0, int), np.zeros(0, int))
+    if len(kq) < 8:
+        return none
+    tree = cKDTree(kq)
+    rows, kk = _match(pose, cam, ref, tree, dq, s.radius_px, s.ratio)
+    p1, inl = _pnp(pose, cam, ref.xyz[rows], kq[kk], s.pnp_px)
+    if p1 is None or inl.sum() < s.min_inliers:
+        return none
+    rows, kk = _match(p1, cam, ref, tree, dq, s.refine_radius_px, s.ratio)
+    p2, inl = _pnp(p1, cam, ref.xyz[rows], kq[kk], s.pnp_px)
+    if p2 is None or inl.sum() < s.min_inliers:
+        return none
+    return p2, rows[inl], kk[inl]
+
+
+def photo_features(db_path: Path, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(keypoints x, y; descriptors as float32) of one photo of a COLMAP database, None if absent."""
+    with pycolmap.Database.open(db_path) as db:
+        if not db.exists_image(name):
+            return None
+        iid = db.read_image_with_name(name).image_id
+        kp = np.asarray(db.read_keypoints(iid))[:, :2]
+        de = db.read_descriptors(iid)
+        de = np.asarray(de.data if hasattr(de, "data") else de)
+    return kp.astype(np.float64), de.astype(np.float32)
+
+
 def cross_matches(query_poses: dict[str, Pose], query_cams: dict[str, Camera], query_dbs: list[Path],
                   ref_rec: pycolmap.Reconstruction, ref_db: Path, s: CrossMatchSettings,
-                  seed: int = 0) -> dict[str, dict[str, tuple[float, float]]]:
+                  seed: int = 0, ref: ReferencePoints | None = None) -> dict[str, dict[str, tuple[float, float]]]:
     """{auto tie id: {image: (x, y)}}: the query photos that matched a reference point + up to
-    ``s.track_obs`` of its reference observations (see the module docstring)."""
+    ``s.track_obs`` of its reference observations (see the module docstring). ``ref``: the
+    reference points if already read."""
     query_dbs = [d for d in query_dbs if Path(d).is_file()]
     if not s.enabled or not Path(ref_db).is_file() or not query_dbs or ref_rec.num_points3D() == 0:
         return {}
     rng = np.random.default_rng(seed)
-    ref = ReferencePoints(ref_rec, ref_db, s.descriptors_per_point)
+    ref = ref or ReferencePoints(ref_rec, ref_db, s.descriptors_per_point)
     qf = {}
     for d in query_dbs:
         qf.update(_features(d))
     out: dict[str, dict[str, tuple[float, float]]] = {}
     n_photos = 0
     for qn, pose in query_poses.items():
-        if qn not in qf or len(qf[qn][0]) < 8:
+        if qn not in qf:
             continue
         kq, dq = qf[qn]
-        cam = query_cams[qn]
-        tree = cKDTree(kq)
-        rows, kk = _match(pose, cam, ref, tree, dq, s.radius_px, s.ratio)
-        p1, inl = _pnp(pose, cam, ref.xyz[rows], kq[kk], s.pnp_px)
-        if p1 is None or inl.sum() < s.min_inliers:
+        p2, rows, kk = match_photo(pose, query_cams[qn], kq, dq, ref, s)
+        if p2 is None:
             continue
-        rows, kk = _match(p1, cam, ref, tree, dq, s.refine_radius_px, s.ratio)
-        _, inl = _pnp(p1, cam, ref.xyz[rows], kq[kk], s.pnp_px)
-        if inl.sum() < s.min_inliers:
-            continue
-        rows, kk = rows[inl], kk[inl]
         if len(rows) > s.max_per_photo:
             pick = rng.choice(len(rows), s.max_per_photo, replace=False)
             rows, kk = rows[pick], kk[pick]

@@ -41,8 +41,9 @@ from ..project import Project, file_fingerprint, mark_stage_done, stage_done
 from . import quiet_colmap
 from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
-from .crossmatch import AUTO_PREFIX, CrossMatchSettings, cross_matches
-from .resect import resect_sequence
+from ..io.exif import prior_pose
+from .crossmatch import AUTO_PREFIX, CrossMatchSettings, ReferencePoints, cross_matches, match_photo, photo_features
+from .resect import candidate_priors, resect_sequence
 from .geometry import (RegistrationError, model_cameras, model_poses, robust_sim3, triangulate_clicks,
                        triangulate_many)
 
@@ -414,6 +415,34 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     ref_rec = pycolmap.Reconstruction(ref_dir)
     ref_cache = {"poses": model_poses(ref_rec), "cams": model_cameras(ref_rec)}
     seq_report, blocks, statuses, resected = {}, {}, {}, {}
+    ref_db = P.stage(REFERENCE_STAGE) / "database.db"
+    ref_points: dict[str, ReferencePoints] = {}   # read once, when first needed
+
+    def reference_points() -> ReferencePoints:
+        if "ref" not in ref_points:
+            ref_points["ref"] = ReferencePoints(ref_rec, ref_db, settings.cross.descriptors_per_point)
+        return ref_points["ref"]
+
+    def match_reference(seq: str):
+        """A left-out photo of ``seq`` resected from automatic matches to the reference points."""
+        def match(name: str, qrec: pycolmap.Reconstruction):
+            if not settings.cross.enabled or not ref_db.is_file():
+                return None, 0, "automatic matching is off or the reference database is missing"
+            priors = candidate_priors(name, qrec, lambda n: prior_pose(P.images / n, project.frame))
+            if not priors:
+                return None, 0, "no GPS and gimbal angles to guide matching"
+            feats = photo_features(P.stage(QUERIES_STAGE) / seq / "database.db", name)
+            if feats is None:
+                return None, 0, "no features in its sequence's database"
+            cam = Camera.from_pycolmap(qrec.cameras[sorted(qrec.cameras)[0]])
+            found = [match_photo(p, cam, *feats, reference_points(), settings.cross) for p in priors]
+            pose, rows, _ = max(found, key=lambda f: len(f[1]))
+            if pose is None:
+                return None, 0, (f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
+                                 "points around its metadata pose")
+            return pose, len(rows), ""
+        return match
+
     for seq, d in seq_dirs.items():
         if not d.is_dir():
             seq_report[seq] = {"status": "error", "error": "no query-block model (run `gtkit sfm DIR --block queries`)"}
@@ -433,7 +462,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         # photos the sequence's SfM left out: resected from their clicks, then adjusted with the rest
         res = resect_sequence(seq, qrec, P.stage(QUERIES_STAGE) / seq / "block.json", P.images, tiepoints,
                               lambda obs: _place(obs, ref_cache["poses"], ref_cache["cams"], ref_rec,
-                                                 settings.tie_max_px)[0], settings.tie_max_px)
+                                                 settings.tie_max_px)[0], settings.tie_max_px, match_reference(seq))
         if res:
             seq_report[seq]["left_out_by_sfm"] = res
             resected.update({n: r for n, r in res.items() if r["resected"]})
@@ -456,7 +485,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         qp.update(model_poses(rec_q))
         qc.update(model_cameras(rec_q))
     auto = cross_matches(qp, qc, [P.stage(QUERIES_STAGE) / sq / "database.db" for sq in blocks], ref_rec,
-                         P.stage(REFERENCE_STAGE) / "database.db", settings.cross)
+                         ref_db, settings.cross, ref=ref_points.get("ref"))
     clicks.update(auto)
     t_cm = time.time() - t_cm
     j = build_joint(ref_rec, blocks, clicks)

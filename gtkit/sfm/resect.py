@@ -7,8 +7,15 @@ RANSAC (:func:`gtkit.localize.pnp.gravity_pnp_ransac`, the IMU's gravity from th
 tags) on the clicks whose tie points the reference photos place, in the reference frame. The photo is
 then added to its (already Sim(3)-registered) sequence model with no SfM points, so the joint
 adjustment refines it with its clicks and the automatic query-reference tie points like any other
-photo. Its record says it was resected and from how many clicks; a photo with too few clicks keeps
-its reason.
+photo. Its record says it was resected and from how many clicks.
+
+Where its clicks cannot hold it (too few, or too few consistent: small seed 17's seq2/0002 had 8
+clicks and 5 inliers), the photo is matched to the reference block's own 3D points as the automatic
+tie points are (:func:`gtkit.sfm.crossmatch.match_photo`: SIFT near the points' projections, PnP
+RANSAC, a second pass), guided by its own metadata pose (GPS, gimbal) or that pose corrected by a
+registered neighbour (:func:`candidate_priors`), whichever most matches agree with. Its record then says
+``"from": "automatic matches"`` and how many matches held it; a photo neither way holds keeps both
+reasons.
 """
 from __future__ import annotations
 
@@ -81,8 +88,41 @@ def resect_photo(name: str, camera: Camera, ties: list[tuple[np.ndarray, np.ndar
     return res
 
 
+def candidate_priors(name: str, qrec: pycolmap.Reconstruction, metadata_pose, neighbours: int = 2) -> list[Pose]:
+    """Poses to guide a left-out photo's matching: its own metadata pose (``metadata_pose(name) ->
+    Pose | None``: GPS position, gimbal attitude), then that pose corrected by each of the
+    ``neighbours`` nearest registered photos of its sequence (names sort in flight order) that have
+    metadata: R = R_reg R_meta^T R_own, C = C_own + C_reg - C_meta. The correction helps where the
+    GPS and gimbal errors hold over a few seconds; on the samples they do not (small seed 17's
+    seq2/0002: own metadata 2.6 m / 2.1 deg off, corrected by a neighbour 6.7 m / 4.9 deg), so the
+    photo's own pose comes first and the caller keeps the one most matches agree with."""
+    own = metadata_pose(name)
+    if own is None:
+        return []
+    out = [own]
+    registered = sorted(im.name for im in qrec.images.values() if im.has_pose)
+    order = sorted(set(registered) | {name})
+    k = order.index(name)
+    for n in sorted(registered, key=lambda m: abs(order.index(m) - k)):
+        if len(out) > neighbours:
+            break
+        meta = metadata_pose(n)
+        if meta is None:
+            continue
+        reg = Pose.from_pycolmap(qrec.find_image_with_name(n).cam_from_world())
+        R = reg.R @ meta.R.T @ own.R
+        out.append(Pose.from_center(R, own.center + reg.center - meta.center))
+    return out
+
+
 def add_to_block(rec: pycolmap.Reconstruction, name: str, camera_id: int, pose: Pose) -> int:
-    """Add a resected photo to a block model (pose only, no keypoints); returns its image id."""
+    """Add a resected photo to a block model (pose only, no keypoints), or give the pose to the
+    photo the model holds without one; returns its image id."""
+    im = rec.find_image_with_name(name)
+    if im is not None:
+        rec.frames[im.frame_id].rig_from_world = pose.to_pycolmap()   # trivial rig: camera = rig
+        rec.register_frame(im.frame_id)
+        return im.image_id
     iid = max(rec.images) + 1 if rec.images else 1
     im = pycolmap.Image(name=name, keypoints=np.zeros((0, 2)), camera_id=camera_id, image_id=iid)
     rec.add_image_with_trivial_frame(im, pose.to_pycolmap())
@@ -90,23 +130,22 @@ def add_to_block(rec: pycolmap.Reconstruction, name: str, camera_id: int, pose: 
 
 
 def resect_sequence(seq: str, qrec: pycolmap.Reconstruction, block_json: Path, images: Path,
-                    tiepoints: list[TiePoint], place_in_reference, max_px: float) -> dict[str, dict]:
+                    tiepoints: list[TiePoint], place_in_reference, max_px: float,
+                    match_reference=None) -> dict[str, dict]:
     """Resect every photo of ``seq`` its SfM left out and add the resected ones to ``qrec`` (already
     in the reference frame). ``place_in_reference(observations) -> xyz | None`` places a tie point
-    from its reference clicks. Returns {photo: record}."""
+    from its reference clicks; ``match_reference(name, qrec) -> (Pose | None, n matches, reason)``,
+    if given, resects a photo its clicks cannot hold from automatic matches to the reference
+    (see the module doc). Returns {photo: record}."""
     left_out = unregistered_photos(block_json)
     if not left_out or not qrec.cameras:
         return {}
     registered = {im.name for im in qrec.images.values() if im.has_pose}
-    present = {im.name for im in qrec.images.values()}
     cam_id = sorted(qrec.cameras)[0]  # a sequence's photos share their camera (one DJI lens a block)
     camera = Camera.from_pycolmap(qrec.cameras[cam_id])
     out = {}
     for name, why in sorted(left_out.items()):
         if name in registered:
-            continue
-        if name in present:
-            out[name] = {"sfm_reason": why, "resected": False, "reason": "in the block model without a pose"}
             continue
         ties = []
         for tp in tiepoints:
@@ -118,11 +157,23 @@ def resect_sequence(seq: str, qrec: pycolmap.Reconstruction, block_json: Path, i
                 ties.append((np.array([mine[0].x, mine[0].y]), np.asarray(X, float)))
         r = resect_photo(name, camera, ties, images / name, max_px)
         rec = {"sfm_reason": why, **r.record()}
+        if r.pose is None and match_reference is not None:
+            pose, n, auto_why = match_reference(name, qrec)
+            if pose is not None:
+                r.pose = pose
+                rec.update({"resected": True, "from": "automatic matches", "n_auto_matches": n,
+                            "clicks_reason": rec.pop("reason", None)})
+                log.info("register: %s (left out by its sequence: %s) resected from %d automatic matches "
+                         "to the reference", name, why, n)
+            else:
+                rec["auto_reason"] = auto_why
         if r.pose is not None:
             add_to_block(qrec, name, cam_id, r.pose)
-            log.info("register: %s (left out by its sequence: %s) resected from %d of %d clicks",
-                     name, why, r.n_inliers, r.n_clicks)
+            if rec.get("from") != "automatic matches":
+                log.info("register: %s (left out by its sequence: %s) resected from %d of %d clicks",
+                         name, why, r.n_inliers, r.n_clicks)
         else:
-            log.warning("register: %s (left out by its sequence: %s) not resected: %s", name, why, r.reason)
+            log.warning("register: %s (left out by its sequence: %s) not resected: %s%s", name, why, r.reason,
+                        f"; {rec['auto_reason']}" if rec.get("auto_reason") else "")
         out[name] = rec
     return out
