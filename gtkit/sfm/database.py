@@ -22,6 +22,11 @@ log = logging.getLogger(__name__)
 class FeatureSettings:
     max_image_size: int = 1600      # px; images are downscaled for SIFT, keypoints are in full-size pixels
     max_num_features: int = 3000    # SIFT keypoints per image (CPU time grows with it)
+    # First octave of SIFT's pyramid: 0 starts at the image's own size; -1 (COLMAP's default) at twice
+    # its size, which costs 3.7x the CPU and, as COLMAP keeps the largest-scale keypoints beyond
+    # max_num_features, adds almost nothing kept: 94-95 % of the kept keypoints are the same within
+    # 0.5 px (samples' 1024 px photos and Brighton's DJI photos at 1600 px, 3000 keypoints).
+    first_octave: int = 0
     num_threads: int = 2
 
 
@@ -52,6 +57,7 @@ def _extraction_options(settings: FeatureSettings) -> pycolmap.FeatureExtraction
     ext = pycolmap.FeatureExtractionOptions()
     ext.max_image_size = settings.max_image_size
     ext.sift.max_num_features = settings.max_num_features
+    ext.sift.first_octave = settings.first_octave
     ext.num_threads = settings.num_threads
     return ext
 
