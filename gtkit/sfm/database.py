@@ -14,6 +14,7 @@ import numpy as np
 import pycolmap
 
 from ..camera import Camera
+from ..errors import GtkitError
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +231,7 @@ def _match_pairs_on(executor, db_path: Path, pairs: list[tuple[str, str]], setti
         results.append(res)
         if progress:
             progress(len(tasks[k][1]))
-    with pycolmap.Database.open(db_path) as db:
+    with _open_shared(db_path) as db:
         for res in results:
             for id1, id2, matches, tvg in res:
                 if db.exists_matches(id1, id2) or db.exists_two_view_geometry(id1, id2):
@@ -239,6 +240,24 @@ def _match_pairs_on(executor, db_path: Path, pairs: list[tuple[str, str]], setti
                     db.write_matches(id1, id2, matches)
                 if tvg is not None:
                     db.write_two_view_geometry(id1, id2, tvg)
+
+
+def _open_shared(db_path, attempts: int = 30):
+    """Open a database that other processes open at the same moment. COLMAP's open writes (it makes
+    its tables if absent), and SQLite refuses a second writer: two local matching workers starting
+    together failed with "database is locked" ("No registered database factory succeeded"). So the
+    open waits and tries again (up to about two minutes) before giving up with the reason."""
+    import random
+    import time
+
+    for k in range(attempts):
+        try:
+            return pycolmap.Database.open(db_path)
+        except RuntimeError as e:
+            if k == attempts - 1:
+                raise GtkitError(f"could not open the database: still locked by another process after {attempts} "
+                                 f"tries ({e})", db_path) from None
+            time.sleep(min(4.0, 0.05 * 2 ** k) * (0.5 + random.random()))
 
 
 def _match_chunk(task: tuple) -> list[tuple]:
@@ -252,7 +271,7 @@ def _match_chunk(task: tuple) -> list[tuple]:
     names = sorted({n for p in pairs for n in p})
     with tempfile.TemporaryDirectory(prefix="gtkit-match-") as tmp:
         scratch = Path(tmp) / "chunk.db"
-        with pycolmap.Database.open(db_path) as src, pycolmap.Database.open(scratch) as dst:
+        with _open_shared(db_path) as src, pycolmap.Database.open(scratch) as dst:
             for r in src.read_all_rigs():
                 dst.write_rig(r, use_rig_id=True)
             for c in src.read_all_cameras():
