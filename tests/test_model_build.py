@@ -277,7 +277,7 @@ def test_tiled_surface_and_tiled_model(built, tmp_path):
           f"p99 {np.quantile(d, 0.99):.0f}")
     assert len(diffs) >= 3 and d.mean() < 2.0 and (d <= 2).mean() > 0.75 and np.quantile(d, 0.99) <= 12
     # both DSMs read triangles only (no texture decoded) and draw a piece (a tile) at a time; the OBJ's
-    # heights are those of the textured model loaded whole, bit for bit (the path before this, which
+    # heights are those of the textured model loaded whole, to float32 rounding (the path before this, which
     # the medium sample's 5.4 M-triangle, 650-texture model outgrew 8 GB with)
     from gtkit.export.sources import load_surface
     from gtkit.export.surface import MeshSurface, rasterize_surface
@@ -288,8 +288,10 @@ def test_tiled_surface_and_tiled_model(built, tmp_path):
     light.piece_triangles = 20_000
     grid = dsm.plan_grid(light, proj.frame, 0.5).grid
     assert light.geometry.n_triangles > 2 * light.piece_triangles
-    np.testing.assert_array_equal(rasterize_surface(light, grid).height,
-                                  rasterize_surface(MeshSurface(load_model(obj, proj.frame)), grid).height)
+    # the same heights to float32 rounding (one CI run: 1 of 141,752 cells 5.7e-6 m apart, the two paths
+    # summing a triangle's plane in another order)
+    np.testing.assert_allclose(rasterize_surface(light, grid).height,
+                               rasterize_surface(MeshSurface(load_model(obj, proj.frame)), grid).height, rtol=0, atol=1e-4)
     m = dsm_vs_truth(root, single)
     print("tiny built model, surface in", summary["surface_tiles"], "tiles, vs true world:", json.dumps(m))
     assert m["completeness"] > 0.85
