@@ -39,7 +39,7 @@ class MatchSettings:
     spatial_max_distance_m: float = 250.0
     retrieval_neighbors: int = 20       # retrieval pairing (photos without GPS): most similar photos per image
     retrieval_always: bool = False      # add retrieval pairs even when every photo has a position
-    chunk_pairs: int = 300              # pairs matched per call (progress granularity)
+    chunk_pairs: int = 600              # pairs matched per call (each call rebuilds its photos' indexes: 300 -> 600, 12 % less)
     sequential_overlap: int = 8         # query sequences: consecutive neighbours matched
     min_num_inliers: int = 15
     num_threads: int = 2
