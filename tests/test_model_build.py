@@ -362,12 +362,11 @@ def test_colour_balancing_at_seams(built):
           f"max {np.abs(residual).max():.4f} over {len(seen)} photos, {len(sc['a'])} seam edges")
     assert len(sc["a"]) > 1000 and len(seen) > 30
     # a photo's gain is solved where it meets another photo at >= 20 usable seam edges (colour_gains'
-    # min_edges, counted as it counts them: both colours finite and within (8, 250), not dark or clipped);
+    # min_edges, counted as it counts them: texture.usable_seam_edges, not dark or clipped);
     # elsewhere it stays 1 by design (a fixture whose SfM left one photo with 17 seam edge ends: 0.22 there;
     # one CI run counted a photo's edges before that filter and called it solved at 0.20)
     n = len(names)
-    ok = np.all(np.isfinite(sc["mid_a"]) & np.isfinite(sc["mid_b"]) & (sc["mid_a"] > 8) & (sc["mid_b"] > 8)
-                & (sc["mid_a"] < 250) & (sc["mid_b"] < 250), axis=1)
+    ok = texture.usable_seam_edges(sc)
     lo, hi = np.minimum(sc["a"][ok], sc["b"][ok]), np.maximum(sc["a"][ok], sc["b"][ok])
     up, cnt = np.unique(lo.astype(np.int64) * n + hi, return_counts=True)
     solved = np.zeros(n, bool)

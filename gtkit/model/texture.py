@@ -183,6 +183,13 @@ def seam_colours(V: np.ndarray, F: np.ndarray, views: dict[str, View], names: li
     return {"a": a, "b": b, "mid_a": c[:n], "mid_b": c[n:2 * n], "in_a": c[2 * n:3 * n], "in_b": c[3 * n:]}
 
 
+def usable_seam_edges(sc: dict) -> np.ndarray:
+    """Which seam edges of :func:`seam_colours` carry a colour in both photos that is neither dark
+    nor clipped (every channel finite and within (8, 250)): the ones :func:`colour_gains` uses."""
+    ca, cb = sc["mid_a"], sc["mid_b"]
+    return np.all(np.isfinite(ca) & np.isfinite(cb) & (ca > 8) & (cb > 8) & (ca < 250) & (cb < 250), axis=1)
+
+
 def colour_gains(sc: dict, n_photos: int, min_edges: int = 20, reg: float = 0.05) -> np.ndarray:
     """(n_photos, 3) per-photo, per-channel gains that even out the seams' colours (from
     :func:`seam_colours`; 1 where a photo meets no other at enough seam edges)."""
@@ -191,7 +198,7 @@ def colour_gains(sc: dict, n_photos: int, min_edges: int = 20, reg: float = 0.05
 
     gains = np.ones((n_photos, 3))
     a, b, ca, cb = sc["a"], sc["b"], sc["mid_a"], sc["mid_b"]
-    ok = np.all(np.isfinite(ca) & np.isfinite(cb) & (ca > 8) & (cb > 8) & (ca < 250) & (cb < 250), axis=1)
+    ok = usable_seam_edges(sc)
     a, b, ca, cb = a[ok], b[ok], ca[ok], cb[ok]
     if not len(a):
         return gains
