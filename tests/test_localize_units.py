@@ -309,3 +309,26 @@ def test_center_covariance_matches_sampled_centres():
     C = np.array([Pose(Rotation.from_rotvec(x[:3]).as_matrix() @ p.R, p.t + x[3:]).center for x in d])
     emp = np.cov(C.T)
     assert np.allclose(p.center_covariance(), emp, rtol=0.05, atol=0.02 * np.abs(emp).max())
+
+
+def test_depth_files_round_trip_compactly_and_old_layouts_still_read(tmp_path):
+    """A database view's depth: uint16 steps of the view's largest depth / 65535, each row
+    differenced modulo 2**16 and deflated; background stays NaN; the earlier 'depth_q' layout reads."""
+    from gtkit.localize.database import _existing_fraction, read_depth, write_depth
+
+    yy, xx = np.mgrid[0:480, 0:640]
+    depth = (120.0 + 0.05 * xx + 0.1 * yy + 8.0 * ((xx // 80 + yy // 60) % 2)).astype(np.float32)
+    depth[:40] = np.nan                                   # sky
+    write_depth(tmp_path / "v.npz", depth, 0.92)
+    back = read_depth(tmp_path / "v.npz")
+    step = np.nanmax(depth) / 65535
+    assert np.array_equal(np.isnan(back), np.isnan(depth))
+    assert np.nanmax(np.abs(back - depth)) <= step / 2 + 1e-4
+    assert (tmp_path / "v.npz").stat().st_size < depth.size * 2 / 4        # under a quarter of raw uint16
+    assert _existing_fraction(tmp_path / "v.npz") == pytest.approx(0.92)
+    write_depth(tmp_path / "dropped.npz", None, 0.1)
+    assert read_depth(tmp_path / "dropped.npz") is None and _existing_fraction(tmp_path / "dropped.npz") == 0.1
+    q = np.where(np.isnan(depth), 0, np.rint(np.nan_to_num(depth) / step)).astype(np.uint16)
+    np.savez_compressed(tmp_path / "old.npz", depth_q=q, depth_scale=np.float64(step), valid_fraction=0.92)
+    old = read_depth(tmp_path / "old.npz")
+    assert np.array_equal(np.isnan(old), np.isnan(depth)) and np.nanmax(np.abs(old - back)) <= step * 1.01

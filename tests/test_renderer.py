@@ -194,3 +194,46 @@ def test_obj_streamed_parts_are_trimesh_parts_and_render_the_same(tmp_path):
     # vertex colours are not kept by the numpy reader: such a file is read by trimesh
     (tmp_path / "c.obj").write_text("v 0 0 0 1 0 0\nv 1 0 0 1 0 0\nv 0 1 0 1 0 0\nf 1 2 3\n")
     assert tuple(next(model_parts(tmp_path / "c.obj")).colors[0]) == (255, 0, 0)
+
+
+def test_parts_outside_the_frustum_are_not_drawn_and_the_view_is_unchanged():
+    """Drawing all parts culls those whose box the view cannot see; the image and depth are those of
+    every part drawn, and a view of no part is empty."""
+    boxes = [box([x, y, 0], [x + 8, y + 8, 5 + (x + y) % 13], (40 + x % 200, 90, 160)) for x in range(-400, 401, 100)
+             for y in range(-400, 401, 100)]
+    r = Renderer(Mesh(boxes + [textured_ground(size=900)]))
+    cam = Camera.pinhole(320, 240, 260)
+    drawn = []
+    orig = r._draw
+    r._draw = lambda *a, **k: (drawn.append(len(a[6])), orig(*a, **k))[1]
+    for dji, c in (((0, -90, 0), [50.0, 50.0, 80.0]), ((60, -30, 0), [-300.0, -250.0, 40.0]),
+                   ((-150, -60, 0), [390.0, 10.0, 120.0])):
+        pose = Pose.from_dji(*dji, c)
+        culled, everything = r.render(cam, pose), r.render(cam, pose, parts=list(range(len(boxes) + 1)))
+        assert np.array_equal(culled.rgb, everything.rgb)
+        assert np.array_equal(culled.depth, everything.depth, equal_nan=True)
+        assert np.isfinite(culled.depth).mean() > 0.3
+    assert drawn[0] < 10 and max(drawn[0::2]) < len(boxes) and set(drawn[1::2]) == {len(boxes) + 1}
+    away = r.render(cam, Pose.from_dji(0, 30, 0, [2000.0, 0.0, 50.0]))  # looking up, off the site
+    assert not np.isfinite(away.depth).any() and not away.rgb.any()
+
+
+def test_ray_box_fraction_bounds_the_rendered_fraction():
+    """The database's free probe: the share of a grid of rays meeting the parts' boxes is never
+    (beyond the grid's sampling) below the share of pixels that see the model."""
+    from gtkit.render.frustum import ray_box_fraction
+
+    r = Renderer(Mesh([box([-200, -200, 0], [200, 200, 2], (90, 90, 90)), box([40, 40, 0], [55, 70, 30], (200, 0, 0))]))
+    cam = Camera.pinhole(320, 240, 277)
+    rng = np.random.default_rng(3)
+    seen = []
+    for _ in range(40):
+        pose = Pose.from_dji(rng.uniform(-180, 180), rng.uniform(-90, -20), 0,
+                             [*rng.uniform(-280, 280, 2), rng.uniform(40, 150)])
+        rendered = float(np.isfinite(r.render(cam, pose, with_rgb=False).depth).mean())
+        bound = ray_box_fraction(cam, pose, r.boxes())
+        assert bound >= rendered - 0.01
+        seen.append((rendered, bound))
+    seen = np.array(seen)
+    assert (seen[:, 0] < 0.4).sum() >= 5 and (seen[:, 0] > 0.6).sum() >= 5     # both kinds of view drawn
+    assert np.median(seen[:, 1] - seen[:, 0]) < 0.05                          # and the bound is tight

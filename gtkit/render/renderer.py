@@ -28,6 +28,7 @@ from ..camera import Camera
 from ..errors import GtkitError
 from ..io.mesh import Mesh
 from ..pose import Pose
+from .frustum import boxes_in_frustum, near_far
 
 _VERTEX = """
 #version 330
@@ -235,6 +236,10 @@ class Renderer:
     def n_triangles(self) -> int:
         return sum(p.n_triangles for p in self._parts if p is not None)
 
+    def boxes(self) -> np.ndarray:
+        """(N, 2, 3) world bounding boxes of the uploaded parts."""
+        return np.stack([self._parts[i].bounds for i in self._live()]) if self._live() else np.zeros((0, 2, 3))
+
     def bounds(self) -> np.ndarray:
         if not self._live():
             raise GtkitError("renderer has no mesh")
@@ -290,17 +295,6 @@ class Renderer:
         return rgb, value
 
     # --- perspective -----------------------------------------------------------------
-    def _near_far(self, pose: Pose, parts) -> tuple[float, float]:
-        b = np.stack([self._parts[i].bounds for i in parts])
-        lo, hi = b[:, 0].min(0), b[:, 1].max(0)
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        z = pose.transform(corners)[:, 2]
-        far = max(float(z.max()) * 1.01, 1.0)
-        c = pose.center
-        dist = float(np.linalg.norm(np.maximum(0, np.maximum(lo - c, c - hi))))  # to the box, 0 inside
-        near = float(np.clip(dist * 0.9, 0.05, far / 10.0))
-        return near, far
-
     @staticmethod
     def projection(cam: Camera, near: float, far: float) -> np.ndarray:
         """OpenGL clip-from-camera for an OpenCV camera (COLMAP pixel convention)."""
@@ -318,13 +312,19 @@ class Renderer:
     def render(self, camera: Camera, pose: Pose, *, lighting: Lighting = NO_LIGHT, with_rgb: bool = True,
                parts: list[int] | None = None, near: float | None = None, far: float | None = None) -> RenderResult:
         """RGB (uint8) and depth (float32 metres along the optical axis, NaN = background)."""
-        parts = self._live() if parts is None else parts
-        if not parts:
+        drawn = self._live() if parts is None else parts
+        if not drawn:
             raise GtkitError("renderer has no mesh to draw")
         pin = camera.pinhole_part()
-        n, f = self._near_far(pose, parts)
+        boxes = np.stack([self._parts[i].bounds for i in drawn])
+        n, f = near_far(np.stack([boxes[:, 0].min(0), boxes[:, 1].max(0)]), pose)
+        if parts is None:  # all parts: those whose box is outside the view's frustum are not drawn
+            drawn = [i for i, seen in zip(drawn, boxes_in_frustum(boxes, pin, pose)) if seen]
+            if not drawn:
+                return RenderResult(np.zeros((camera.height, camera.width, 3), np.uint8) if with_rgb else None,
+                                    np.full((camera.height, camera.width), np.nan, np.float32))
         P = self.projection(pin, near or n, far or f)
-        rgb, depth = self._draw(pin.width, pin.height, P @ pose.matrix, pose.matrix, 0, lighting, parts, with_rgb)
+        rgb, depth = self._draw(pin.width, pin.height, P @ pose.matrix, pose.matrix, 0, lighting, drawn, with_rgb)
         if camera.has_distortion:
             rgb, depth = distort_images(camera, rgb, depth)
         return RenderResult(rgb, depth)

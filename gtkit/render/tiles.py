@@ -27,48 +27,11 @@ from ..camera import Camera
 from ..errors import GtkitError
 from ..io.tiled import TiledModel, is_tiled
 from ..pose import Pose
+from .frustum import boxes_in_frustum, near_far
 from .renderer import NO_LIGHT, Lighting, Renderer, RenderResult
 from .texture_detail import TextureDetail, coarsen
 
 log = logging.getLogger(__name__)
-
-
-def near_far(bounds: np.ndarray, pose: Pose) -> tuple[float, float]:
-    """Near/far planes for a view of a box, chosen as the renderer chooses them for its mesh."""
-    lo, hi = bounds
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    z = pose.transform(corners)[:, 2]
-    far = max(float(z.max()) * 1.01, 1.0)
-    c = pose.center
-    dist = float(np.linalg.norm(np.maximum(0, np.maximum(lo - c, c - hi))))
-    near = float(np.clip(dist * 0.9, 0.05, far / 10.0))
-    return near, far
-
-
-def boxes_in_frustum(boxes: np.ndarray, camera: Camera, pose: Pose, margin: float = 0.05,
-                     far: float | None = None) -> np.ndarray:
-    """(N, 2, 3) world boxes -> (N,) bool: may the box be seen by the camera?
-
-    ``margin`` widens the image by that fraction on every side (covers lens distortion)."""
-    lo, hi = boxes[:, 0], boxes[:, 1]
-    sel = np.array([[0, 0, 0], [0, 0, 1], [0, 1, 0], [0, 1, 1], [1, 0, 0], [1, 0, 1], [1, 1, 0], [1, 1, 1]])
-    corners = np.where(sel[None, :, :] == 0, lo[:, None, :], hi[:, None, :])  # (N, 8, 3)
-    pc = corners @ pose.R.T + pose.t
-    x, y, z = pc[..., 0], pc[..., 1], pc[..., 2]
-    W, H = camera.width, camera.height
-    u0, u1 = -margin * W, (1 + margin) * W
-    v0, v1 = -margin * H, (1 + margin) * H
-    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    # u = fx x/z + cx >= u0  <=>  fx x + (cx - u0) z >= 0 (z > 0), and so on
-    planes = [z - 1e-6,
-              fx * x + (cx - u0) * z, (u1 - cx) * z - fx * x,
-              fy * y + (cy - v0) * z, (v1 - cy) * z - fy * y]
-    if far is not None:
-        planes.append(far - z)
-    outside = np.zeros(len(boxes), bool)
-    for d in planes:
-        outside |= np.all(d < 0, axis=1)
-    return ~outside
 
 
 @dataclass
@@ -114,6 +77,10 @@ class TileStreamer:
         self.stats = StreamStats()
 
     # --- selection --------------------------------------------------------------------------
+    def boxes(self) -> np.ndarray:
+        """(N, 2, 3) world bounding boxes of the model's tiles."""
+        return self._boxes
+
     def visible_tiles(self, camera: Camera, pose: Pose, margin: float = 0.05) -> list[str]:
         m = margin + (0.1 if camera.has_distortion else 0.0)
         keep = boxes_in_frustum(self._boxes, camera, pose, m)

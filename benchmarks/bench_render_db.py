@@ -1,0 +1,80 @@
+"""Where a render-db view's time goes, on a project's model: one process, every STEP-th planned view.
+
+    .venv/bin/python benchmarks/bench_render_db.py PROJECT [--step 50]
+
+Per planned view: the free ray-box probe, the 80 x 60 drawn probe (views the ray grid cannot settle),
+the full 640 x 480 render (views the probes keep), the JPEG encode and the depth file write (views
+kept). Printed: how many views each step ran on, ms per run, and views/s of this one process (the
+stage runs two worker processes; Mesa's rasteriser threads besides). Writes nothing to the project.
+Measured on medium seed 6 (README, issue 16): ray probe 2.7, drawn probe 8, full 18-22, JPEG 1.3,
+depth 8 ms.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("project")
+    ap.add_argument("--step", type=int, default=50)
+    args = ap.parse_args()
+    import cv2
+
+    from gtkit.localize import database as D
+    from gtkit.project import Project
+    from gtkit.render.frustum import ray_box_fraction
+
+    project = Project.load(args.project)
+    s = D.RenderDbSettings()
+    t = time.perf_counter()
+    views, info = D.plan_views(project, s)
+    print(f"planned {len(views)} views in {time.perf_counter() - t:.1f} s")
+    t = time.perf_counter()
+    r = D._renderer_for(str(project.paths.root), s, info["ground_level_z"])
+    print(f"model opened in {time.perf_counter() - t:.1f} s")
+    cam = D.db_camera(s)
+    probe, boxes = cam.scaled(D.PROBE_SCALE), r.boxes()
+    T = {k: [0.0, 0] for k in ("ray probe", "drawn probe", "full render", "jpeg", "depth file")}
+
+    def timed(name, fn, *a, **k):
+        t0 = time.perf_counter()
+        out = fn(*a, **k)
+        T[name][0] += time.perf_counter() - t0
+        T[name][1] += 1
+        return out
+
+    lo = s.min_valid_fraction - D.PROBE_MARGIN
+    sub = views[::args.step]
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        for v in sub:
+            frac = timed("ray probe", ray_box_fraction, cam, v.pose(), boxes)
+            if lo <= frac < D.BOX_SURE:
+                frac = float(np.isfinite(timed("drawn probe", D.render_view, r, probe, v, with_rgb=False).depth).mean())
+            if frac < lo:
+                continue
+            rr = timed("full render", D.render_view, r, cam, v)
+            frac = float(np.isfinite(rr.depth).mean())
+            if frac >= s.min_valid_fraction:
+                timed("jpeg", cv2.imencode, ".jpg", cv2.cvtColor(rr.rgb, cv2.COLOR_RGB2BGR),
+                      [cv2.IMWRITE_JPEG_QUALITY, s.jpeg_quality])
+                timed("depth file", D.write_depth, Path(tmp) / "d.npz", rr.depth, frac)
+    wall = time.perf_counter() - t0
+    print(f"\n{len(sub)} views (every {args.step}th), {wall:.1f} s, {len(sub) / wall:.1f} views/s in one process\n")
+    print("| step | views | ms a run |\n|---|---|---|")
+    for k, (sec, n) in T.items():
+        print(f"| {k} | {n} | {1000 * sec / max(n, 1):.1f} |")
+
+
+if __name__ == "__main__":
+    main()
