@@ -159,6 +159,11 @@ class _Part:
                 o.release()
 
 
+def union_box(boxes: np.ndarray) -> np.ndarray:
+    """(2, 3) box around (N, 2, 3) boxes."""
+    return np.stack([boxes[:, 0].min(0), boxes[:, 1].max(0)])
+
+
 class Renderer:
     """Renders uploaded meshes for many cameras. Not thread-safe; one per thread."""
 
@@ -238,13 +243,13 @@ class Renderer:
 
     def boxes(self) -> np.ndarray:
         """(N, 2, 3) world bounding boxes of the uploaded parts."""
-        return np.stack([self._parts[i].bounds for i in self._live()]) if self._live() else np.zeros((0, 2, 3))
+        live = self._live()
+        return np.stack([self._parts[i].bounds for i in live]) if live else np.zeros((0, 2, 3))
 
     def bounds(self) -> np.ndarray:
         if not self._live():
             raise GtkitError("renderer has no mesh")
-        b = np.stack([p.bounds for p in self._parts if p is not None])
-        return np.stack([b[:, 0].min(0), b[:, 1].max(0)])
+        return union_box(self.boxes())
 
     # --- targets -------------------------------------------------------------------
     def _fbo(self, w: int, h: int):
@@ -317,7 +322,7 @@ class Renderer:
             raise GtkitError("renderer has no mesh to draw")
         pin = camera.pinhole_part()
         boxes = np.stack([self._parts[i].bounds for i in drawn])
-        n, f = near_far(np.stack([boxes[:, 0].min(0), boxes[:, 1].max(0)]), pose)
+        n, f = near_far(union_box(boxes), pose)
         if parts is None:  # all parts: those whose box is outside the view's frustum are not drawn
             drawn = [i for i, seen in zip(drawn, boxes_in_frustum(boxes, pin, pose)) if seen]
             if not drawn:
