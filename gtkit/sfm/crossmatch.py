@@ -89,15 +89,17 @@ class ReferencePoints:
                 self.desc[r[:, 0], r[:, 1]] = de[r[:, 2]]
 
 
+def _read_features(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """(keypoints x, y as float64; descriptors as float32) of one image of an open COLMAP database."""
+    kp = np.asarray(db.read_keypoints(image_id))[:, :2]
+    de = db.read_descriptors(image_id)
+    de = np.asarray(de.data if hasattr(de, "data") else de)
+    return kp.astype(np.float64), de.astype(np.float32)
+
+
 def _features(db_path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    out = {}
     with pycolmap.Database.open(db_path) as db:
-        for im in db.read_all_images():
-            kp = np.asarray(db.read_keypoints(im.image_id))[:, :2]
-            de = db.read_descriptors(im.image_id)
-            de = np.asarray(de.data if hasattr(de, "data") else de)
-            out[im.name] = (kp.astype(np.float64), de.astype(np.float32))
-    return out
+        return {im.name: _read_features(db, im.image_id) for im in db.read_all_images()}
 
 
 def _match(pose: Pose, cam: Camera, ref: ReferencePoints, tree: cKDTree, dq: np.ndarray, radius: float,
@@ -171,11 +173,7 @@ def photo_features(db_path: Path, name: str) -> tuple[np.ndarray, np.ndarray] | 
     with pycolmap.Database.open(db_path) as db:
         if not db.exists_image(name):
             return None
-        iid = db.read_image_with_name(name).image_id
-        kp = np.asarray(db.read_keypoints(iid))[:, :2]
-        de = db.read_descriptors(iid)
-        de = np.asarray(de.data if hasattr(de, "data") else de)
-    return kp.astype(np.float64), de.astype(np.float32)
+        return _read_features(db, db.read_image_with_name(name).image_id)
 
 
 def cross_matches(query_poses: dict[str, Pose], query_cams: dict[str, Camera], query_dbs: list[Path],
