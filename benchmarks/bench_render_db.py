@@ -1,6 +1,6 @@
 """Where a render-db view's time goes, on a project's model: one process, every STEP-th planned view.
 
-    .venv/bin/python benchmarks/bench_render_db.py PROJECT [--step 50]
+    .venv/bin/python benchmarks/bench_render_db.py PROJECT [--step 50] [--model model/tiles]
 
 Per planned view: the free ray-box probe, the 80 x 60 drawn probe (views the ray grid cannot settle),
 the full 640 x 480 render (views the probes keep), the JPEG encode and the depth file write (views
@@ -12,6 +12,7 @@ render 18.3, JPEG 1.0, depth file 6.6 ms; 37.0 views/s.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import tempfile
 import time
@@ -27,6 +28,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("project")
     ap.add_argument("--step", type=int, default=50)
+    ap.add_argument("--model", default=None, help="the model to draw, relative to the project "
+                    "(default: render-db's, model/reference.obj); a folder = a tiled model, streamed")
     args = ap.parse_args()
     import cv2
 
@@ -35,7 +38,7 @@ def main() -> None:
     from gtkit.render.frustum import ray_box_fraction
 
     project = Project.load(args.project)
-    s = D.RenderDbSettings()
+    s = D.RenderDbSettings() if not args.model else dataclasses.replace(D.RenderDbSettings(), model=args.model)
     t = time.perf_counter()
     views, info = D.plan_views(project, s)
     print(f"planned {len(views)} views in {time.perf_counter() - t:.1f} s")

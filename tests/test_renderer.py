@@ -237,3 +237,31 @@ def test_ray_box_fraction_bounds_the_rendered_fraction():
     seen = np.array(seen)
     assert (seen[:, 0] < 0.4).sum() >= 5 and (seen[:, 0] > 0.6).sum() >= 5     # both kinds of view drawn
     assert np.median(seen[:, 1] - seen[:, 0]) < 0.05                          # and the bound is tight
+
+
+def test_ray_box_fraction_of_many_boxes_is_each_ray_against_every_box():
+    """With hundreds of overlapping boxes (a photo-built model: a part per photo) the probe skips
+    boxes outside the frustum and rays already met; the share is the same as every grid ray tested
+    against every box."""
+    from gtkit.render.frustum import ray_box_fraction
+
+    rng = np.random.default_rng(5)
+    lo = rng.uniform(-400, 300, (300, 3)) * [1, 1, 0.05]
+    boxes = np.stack([lo, lo + rng.uniform(5, 250, (300, 3)) * [1, 1, 0.2]], axis=1)
+    cam = Camera.pinhole(320, 240, 277)
+    u, v = np.meshgrid((np.arange(40) + 0.5) * 8, (np.arange(30) + 0.5) * 8)
+    rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], -1).reshape(-1, 3)
+    shares = []
+    for _ in range(30):
+        pose = Pose.from_dji(rng.uniform(-180, 180), rng.uniform(-90, -10), 0,
+                             [*rng.uniform(-600, 600, 2), rng.uniform(40, 200)])
+        d = rays @ pose.R
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0 = (boxes[None, :, 0] - pose.center) / d[:, None]
+            t1 = (boxes[None, :, 1] - pose.center) / d[:, None]
+            enter = np.nanmax(np.minimum(t0, t1), axis=2)
+            leave = np.nanmin(np.maximum(t0, t1), axis=2)
+        every = float((leave >= np.maximum(enter, 0.0)).any(axis=1).mean())
+        assert ray_box_fraction(cam, pose, boxes) == every
+        shares.append(every)
+    assert min(shares) < 0.3 and max(shares) > 0.9

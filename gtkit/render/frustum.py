@@ -48,10 +48,16 @@ def boxes_in_frustum(boxes: np.ndarray, camera: Camera, pose: Pose, margin: floa
     return ~outside
 
 
-def ray_box_fraction(camera: Camera, pose: Pose, boxes: np.ndarray, grid: tuple[int, int] = (40, 30)) -> float:
+def ray_box_fraction(camera: Camera, pose: Pose, boxes: np.ndarray, grid: tuple[int, int] = (40, 30),
+                     chunk: int = 16) -> float:
     """The share of a ``grid`` of the camera's pixel rays (pinhole) that meet at least one of the
     (N, 2, 3) world ``boxes`` in front of the camera: an upper bound of the share of pixels that see
-    a surface inside the boxes (up to the grid's sampling), at no rendering cost."""
+    a surface inside the boxes (up to the grid's sampling), at no rendering cost.
+
+    Boxes outside the view's frustum are skipped (no ray of the grid can meet them), the rest are
+    tested largest first, ``chunk`` at a time, against the rays no box has met yet: a model of
+    hundreds of overlapping part boxes (a photo-built model, a part per photo) costs about what a
+    few boxes do."""
     nu, nv = grid
     u = (np.arange(nu) + 0.5) * camera.width / nu
     v = (np.arange(nv) + 0.5) * camera.height / nv
@@ -59,11 +65,21 @@ def ray_box_fraction(camera: Camera, pose: Pose, boxes: np.ndarray, grid: tuple[
     rays = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy, np.ones_like(uu)], -1)
     d = rays.reshape(-1, 3) @ pose.R          # camera -> world directions (R^T x)
     c = pose.center
+    boxes = np.asarray(boxes, float).reshape(-1, 2, 3)
+    boxes = boxes[boxes_in_frustum(boxes, camera, pose, margin=0.0)]
+    boxes = boxes[np.argsort(-np.prod(boxes[:, 1] - boxes[:, 0], axis=1), kind="stable")]
+    hit = np.zeros(len(d), bool)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / d
-        t0 = (boxes[None, :, 0, :] - c) * inv[:, None, :]
-        t1 = (boxes[None, :, 1, :] - c) * inv[:, None, :]
-    # slab test; an axis the ray is parallel to gives NaN/inf and is decided by the others
-    enter = np.nanmax(np.minimum(t0, t1), axis=2)
-    leave = np.nanmin(np.maximum(t0, t1), axis=2)
-    return float((leave >= np.maximum(enter, 0.0)).any(axis=1).mean())
+        for k in range(0, len(boxes), chunk):
+            todo = np.flatnonzero(~hit)
+            if not len(todo):
+                break
+            b = boxes[k:k + chunk]
+            t0 = (b[None, :, 0, :] - c) * inv[todo, None, :]
+            t1 = (b[None, :, 1, :] - c) * inv[todo, None, :]
+            # slab test; an axis the ray is parallel to gives NaN/inf and is decided by the others
+            enter = np.nanmax(np.minimum(t0, t1), axis=2)
+            leave = np.nanmin(np.maximum(t0, t1), axis=2)
+            hit[todo] = (leave >= np.maximum(enter, 0.0)).any(axis=1)
+    return float(hit.mean())
