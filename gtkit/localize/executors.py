@@ -68,7 +68,9 @@ class DaskExecutor:
         self._cluster = None
         if address:
             self._client = Client(address)
+            self.workers = max(1, len(self._client.scheduler_info().get("workers", {})))
         else:
+            self.workers = workers
             self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                          dashboard_address=None, silence_logs=40)
             self._client = Client(self._cluster)

@@ -68,6 +68,29 @@ def retrieval_pairs(descriptors: dict[str, np.ndarray], k: int, words: int = 64,
     return sorted(out)
 
 
+def locality_order(pairs: list[Pair]) -> list[Pair]:
+    """The same pairs, ordered so that a run of consecutive pairs touches few photos: the photos are
+    ranked by reverse Cuthill-McKee on the pair graph (photos paired with each other get near ranks)
+    and the pairs sorted by their later photo's rank, then the earlier one's. COLMAP's matcher reads a
+    photo's descriptors and builds its search index once per matching call, so chunks cut from this
+    order rebuild fewer indexes (medium, 7,522 pairs in 4 chunks: 893 builds, 1,215 in name order)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    names = sorted({n for p in pairs for n in p})
+    if len(names) < 3:
+        return list(pairs)
+    idx = {n: i for i, n in enumerate(names)}
+    i = np.array([idx[a] for a, _ in pairs])
+    j = np.array([idx[b] for _, b in pairs])
+    graph = coo_matrix((np.ones(2 * len(pairs)), (np.r_[i, j], np.r_[j, i])), shape=(len(names),) * 2).tocsr()
+    rank = np.empty(len(names), int)
+    rank[reverse_cuthill_mckee(graph, symmetric_mode=True)] = np.arange(len(names))
+    ri, rj = rank[i], rank[j]
+    order = np.lexsort((np.minimum(ri, rj), np.maximum(ri, rj)))
+    return [pairs[k] for k in order]
+
+
 def block_pairs(names: list[str], positions: dict[str, np.ndarray], descriptors_fn, *, kind: str,
                 exhaustive_max: int, exhaustive_max_without_gps: int, spatial_k: int, spatial_max_m: float,
                 retrieval_k: int, retrieval_always: bool = False,
