@@ -12,7 +12,7 @@ import pytest
 from gtkit.cli import main
 from gtkit.errors import GtkitError
 from gtkit.io.poses import read_poses
-from gtkit.localize import database, localize
+from gtkit.localize import database, feature_store, localize
 from gtkit.localize.executors import ExecutorSettings, make_executor, run_map
 from test_localize_scene import build_site, default_queries
 
@@ -85,8 +85,10 @@ def test_changing_the_pitch_levels_keeps_the_views_and_features_on_disk(site, tm
 
 
 def test_database_features_resume_after_the_process_is_killed(site, tmp_path):
-    """Database features are flushed chunk by chunk: a run killed (SIGKILL) mid-way leaves a
-    readable feature file, and the next run extracts only the views still missing."""
+    """Database features are kept chunk by chunk, each chunk a whole file: a run killed (SIGKILL)
+    mid-way leaves no half-written file, and the next run extracts only the views still missing.
+    (Appending to one HDF5 file in place was not safe: a kill during a metadata write left a file
+    that opened but failed on a lookup, "addr overflow".)"""
     import os
     import signal
     import subprocess
@@ -104,10 +106,11 @@ def test_database_features_resume_after_the_process_is_killed(site, tmp_path):
             f"p = Project.load({str(copy)!r})\n"
             "localize.prepare_database(p, load_database(p), localize.LocalizeSettings(), ExecutorSettings('serial'))\n")
     feats = localize._db_cache(Project.load(copy), localize.LocalizeSettings()) / "features.h5"
+    parts = feats.with_name("features.h5.parts")
     proc = subprocess.Popen([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
     t0 = time.time()
     while proc.poll() is None and time.time() - t0 < 120:
-        if feats.is_file() and feats.stat().st_size > 1_000_000:     # a few chunks written
+        if parts.is_dir() and len(list(parts.glob("*.h5"))) >= 2:     # a few chunks written
             proc.send_signal(signal.SIGKILL)
             break
         time.sleep(0.05)
@@ -117,6 +120,8 @@ def test_database_features_resume_after_the_process_is_killed(site, tmp_path):
     db = database.load_database(p)
     t = localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))
     assert 0 < t["db_features_views"] < len(db.views)
+    assert not parts.exists()      # the chunks folded into the feature file
+    assert feature_store.stored_views(feats) == {v.name for v in db.views}
     assert localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))["db_features_views"] == 0
     # the global descriptors: a matrix apart (.npy), memory-mapped by each worker; a cache written before
     # it was kept apart (G inside the .npz) is converted, not recomputed

@@ -246,20 +246,16 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
     """Database features + VLAD codebook + global descriptors, cached; returns seconds by step."""
     import h5py
 
+    from . import feature_store
     from .descriptors import Vlad
-    from .features import write_features
 
     cache = _db_cache(project, s)
     cache.mkdir(parents=True, exist_ok=True)
     feats = cache / "features.h5"
     times = {}
     t0 = time.perf_counter()
-    try:
-        with h5py.File(feats, "a") as h5:
-            todo = [v for v in db.views if v.name not in h5 or "desc" not in h5[v.name]]  # desc is written last
-    except OSError:  # a run killed mid-write: start the feature file again
-        feats.unlink(missing_ok=True)
-        todo = list(db.views)
+    done = feature_store.stored_views(feats)   # the feature file + the chunks a killed run finished
+    todo = [v for v in db.views if v.name not in done]
     c0, worker_cpu = time.process_time(), 0.0
     if todo:
         ex = make_executor(executor)
@@ -267,16 +263,15 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
         tasks = [(asdict(s.features), [(v.name, str(v.image)) for v in todo[i:i + 16]], one_thread)
                  for i in range(0, len(todo), 16)]
         try:
-            with h5py.File(feats, "a") as h5:
-                for res, cpu in iter_map(ex, _extract_db_views, tasks, progress="db features"):
-                    worker_cpu += cpu if one_thread else 0.0  # serial: already in this process's time
-                    for name, f in res:
-                        if f is None:
-                            raise GtkitError("unreadable database image", db.root / "images" / f"{name}.jpg")
-                        write_features(h5, name, f)
-                    h5.flush()   # each chunk on disk: a killed run resumes from here
+            for res, cpu in iter_map(ex, _extract_db_views, tasks, progress="db features"):
+                worker_cpu += cpu if one_thread else 0.0  # serial: already in this process's time
+                for name, f in res:
+                    if f is None:
+                        raise GtkitError("unreadable database image", db.root / "images" / f"{name}.jpg")
+                feature_store.write_part(feats, dict(res))  # each chunk a whole file: a killed run resumes here
         finally:
             ex.close()
+    feature_store.merge_parts(feats)
     times["db_features_s"] = time.perf_counter() - t0
     times["db_features_views"] = len(todo)
     # CPU seconds: this process (all its threads) + what each chunk took in its worker (worker

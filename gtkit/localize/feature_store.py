@@ -1,0 +1,91 @@
+"""Crash-safe database feature file: HDF5 written only whole, chunks kept as whole files.
+
+An HDF5 file appended to in place is not safe against a killed process: a SIGKILL in the middle of
+a metadata write leaves a file that opens but fails on a later lookup ("addr overflow"), and all
+its views are lost. So the feature file (``features.h5``, one group per view, read by
+:func:`.features.read_features`) is only ever replaced whole (:func:`..io.atomic.atomic_path`),
+and while it is being extracted each chunk of views goes to its own small file in
+``features.h5.parts/``, also written whole. A killed run leaves the finished chunks; the next run
+extracts only the views in none of them, then merges the chunks into a new feature file.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+from ..io.atomic import atomic_path
+from .features import Features, write_features
+
+log = logging.getLogger(__name__)
+
+
+def parts_dir(path: Path) -> Path:
+    return path.with_name(path.name + ".parts")
+
+
+def _complete_views(path: Path) -> set[str] | None:
+    """Views whose descriptors (written last) are in the file; None if it cannot be read."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as h5:
+            views: set[str] = set()
+            h5.visititems(lambda name, obj: views.add(name) if isinstance(obj, h5py.Group) and "desc" in obj else None)
+            return views
+    except (OSError, RuntimeError, KeyError, ValueError):
+        return None
+
+
+def stored_views(path: Path) -> set[str]:
+    """Views already extracted, in the feature file or in finished chunks of a killed run.
+
+    An unreadable file (only a gtkit from before the chunk files could leave one) is removed and
+    its views counted as missing.
+    """
+    done: set[str] = set()
+    for f in ([path] if path.is_file() else []) + sorted(parts_dir(path).glob("*.h5")):
+        views = _complete_views(f)
+        if views is None:
+            log.warning("%s: unreadable feature file (a run killed mid-write?), its views are extracted again", f)
+            f.unlink()
+        else:
+            done |= views
+    return done
+
+
+def write_part(path: Path, features: dict[str, Features]) -> Path:
+    """One chunk of views as a whole file beside the feature file."""
+    import h5py
+
+    d = parts_dir(path)
+    d.mkdir(parents=True, exist_ok=True)
+    n = 1 + max((int(p.stem) for p in d.glob("*.h5") if p.stem.isdigit()), default=-1)
+    part = d / f"{n:06d}.h5"
+    with atomic_path(part) as tmp, h5py.File(tmp, "w") as h5:
+        for name, f in features.items():
+            write_features(h5, name, f)
+    return part
+
+
+def merge_parts(path: Path) -> None:
+    """Fold the chunk files into the feature file (a new file, replacing the old one whole)."""
+    import h5py
+
+    d = parts_dir(path)
+    parts = sorted(d.glob("*.h5")) if d.is_dir() else []
+    if not parts:
+        return
+    with atomic_path(path) as tmp:
+        if path.is_file():
+            shutil.copyfile(path, tmp)
+        with h5py.File(tmp, "a") as out:
+            for part in parts:
+                views = _complete_views(part)
+                with h5py.File(part, "r") as h5:
+                    for name in sorted(views or ()):
+                        if name in out:
+                            del out[name]
+                        parent, _, leaf = name.rpartition("/")
+                        h5.copy(h5[name], out.require_group(parent) if parent else out, leaf)
+    shutil.rmtree(d)
