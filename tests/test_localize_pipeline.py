@@ -142,6 +142,47 @@ def test_database_features_resume_after_the_process_is_killed(site, tmp_path):
     assert isinstance(ctx["G"], np.memmap)
 
 
+def test_local_workers_end_when_the_process_that_started_them_is_killed(tmp_path):
+    """A run killed with SIGKILL leaves no worker processes behind (they would sit idle for good)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pids = tmp_path / "pids.txt"
+    code = ("import os, time\n"
+            "from gtkit.localize.executors import ExecutorSettings, make_executor\n"
+            "ex = make_executor(ExecutorSettings('local', 2))\n"
+            "got = list(ex.map(time.sleep, [0.5, 0.5]))\n"      # both workers started
+            "w = [p.pid for p in ex._pool._processes.values()]\n"
+            f"open({str(pids)!r}, 'w').write(' '.join(map(str, w)))\n"
+            "time.sleep(600)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    t0 = time.time()
+    while not (pids.is_file() and pids.read_text()) and time.time() - t0 < 60:
+        time.sleep(0.1)
+    workers = [int(p) for p in pids.read_text().split()]
+    assert len(workers) == 2
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+
+    def alive(pid):
+        try:
+            with open(f"/proc/{pid}/stat") as f:   # an exited child not yet reaped by its new parent: Z
+                return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:
+            return False
+
+    t0 = time.time()
+    while any(alive(p) for p in workers) and time.time() - t0 < 10:
+        time.sleep(0.1)
+    left = [p for p in workers if alive(p)]
+    for p in left:
+        os.kill(p, signal.SIGKILL)
+    assert not left, f"workers still running {time.time() - t0:.0f} s after their parent was killed"
+
+
 def test_localize_and_evaluate_against_truth(site):
     assert main(["localize", str(site), "--executor", "local", "--workers", "2"]) == 0
     assert main(["evaluate", str(site), "--what", "localization"]) == 0
