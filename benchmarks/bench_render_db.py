@@ -35,7 +35,6 @@ def main() -> None:
 
     from gtkit.localize import database as D
     from gtkit.project import Project
-    from gtkit.render.frustum import ray_box_fraction
 
     project = Project.load(args.project)
     s = D.RenderDbSettings() if not args.model else dataclasses.replace(D.RenderDbSettings(), model=args.model)
@@ -61,12 +60,10 @@ def main() -> None:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for v in sub:
-            frac = timed("ray probe", ray_box_fraction, cam, v.pose(), boxes)
-            if lo <= frac < D.BOX_SURE:
-                frac = float(np.isfinite(timed("drawn probe", D.render_view, r, probe, v, with_rgb=False).depth).mean())
+            frac = D.probed_fraction(r, cam, probe, v, s, boxes, timed)   # render-db's own rule
             if frac < lo:
                 continue
-            rr = timed("full render", D.render_view, r, cam, v)
+            rr = timed("full render", D.render_view, r, cam, v, s.parts)
             frac = float(np.isfinite(rr.depth).mean())
             if frac >= s.min_valid_fraction:
                 timed("jpeg", cv2.imencode, ".jpg", cv2.cvtColor(rr.rgb, cv2.COLOR_RGB2BGR),

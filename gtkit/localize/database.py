@@ -155,6 +155,21 @@ PROBE_MARGIN = 0.05
 BOX_SURE = 0.9
 
 
+def _call(_step: str, fn, *a, **k):
+    return fn(*a, **k)
+
+
+def probed_fraction(r, cam, probe, view: "View", s: "RenderDbSettings", boxes, timed=_call) -> float:
+    """The share of ``view`` that sees the model as far as the two probes tell: the ray-box share,
+    or the drawn probe's where that is not sure. The view needs its full render when this is at
+    least ``min_valid_fraction - PROBE_MARGIN``. ``timed(step, fn, *args)`` wraps each probe (the
+    benchmark times them)."""
+    frac = timed("ray probe", ray_box_fraction, cam, view.pose(), boxes)
+    if s.min_valid_fraction - PROBE_MARGIN <= frac < BOX_SURE:
+        frac = float(np.isfinite(timed("drawn probe", render_view, r, probe, view, s.parts, with_rgb=False).depth).mean())
+    return frac
+
+
 def model_fingerprint(root: Path, model: str) -> str:
     path = Path(root) / model
     if is_tiled(path):
@@ -208,9 +223,7 @@ def _render_chunk(task) -> list[tuple[str, float]]:
     for vd in views:
         v = View(**{**vd, "center": tuple(vd["center"])})
         dpath = out / "depth" / f"{v.name}.npz"
-        frac = ray_box_fraction(cam, v.pose(), boxes)
-        if s.min_valid_fraction - PROBE_MARGIN <= frac < BOX_SURE:
-            frac = float(np.isfinite(render_view(r, probe, v, s.parts, with_rgb=False).depth).mean())
+        frac = probed_fraction(r, cam, probe, v, s, boxes)
         if frac >= s.min_valid_fraction - PROBE_MARGIN:
             rr = render_view(r, cam, v, s.parts)
             frac = float(np.isfinite(rr.depth).mean())
