@@ -35,6 +35,15 @@ log = logging.getLogger(__name__)
 AUTO_PREFIX = "auto:"   # ids of automatic tie points: auto:ref<reference point id>
 
 
+def auto_tie_id(point3d_id: int) -> str:
+    return f"{AUTO_PREFIX}ref{point3d_id}"
+
+
+def reference_point_of(tie_id: str) -> int:
+    """The reference block's 3D point an automatic tie point was matched to."""
+    return int(tie_id[len(AUTO_PREFIX) + 3:])
+
+
 @dataclass
 class CrossMatchSettings:
     enabled: bool = True          # automatic tie points (False: the annotators' clicks only)
@@ -204,7 +213,7 @@ def cross_matches(query_poses: dict[str, Pose], query_cams: dict[str, Camera], q
             rows, kk = rows[pick], kk[pick]
         n_photos += 1
         for r, k in zip(rows, kk):
-            tid = f"{AUTO_PREFIX}ref{ref.ids[r]}"
+            tid = auto_tie_id(ref.ids[r])
             if tid not in out:
                 obs = [(ref.names[ref.img[r, j]], tuple(ref.xy[r, j])) for j in range(ref.img.shape[1])
                        if ref.img[r, j] >= 0][:s.track_obs]

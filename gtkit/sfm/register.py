@@ -42,8 +42,10 @@ from . import quiet_colmap
 from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
 from ..io.exif import prior_pose
-from .crossmatch import AUTO_PREFIX, CrossMatchSettings, ReferencePoints, cross_matches, match_photo, photo_features
+from .crossmatch import (AUTO_PREFIX, CrossMatchSettings, ReferencePoints, cross_matches, match_photo, photo_features,
+                         reference_point_of)
 from .resect import candidate_priors, resect_sequence
+from .tie_surface import SmoothSurfaceSettings, smooth_surface_filter
 from .geometry import (RegistrationError, model_cameras, model_poses, robust_sim3, triangulate_clicks,
                        triangulate_many)
 
@@ -68,6 +70,9 @@ class RegisterSettings:
     num_threads: int = 2
     # automatic SIFT tie points between query and reference photos, added to the clicks
     cross: CrossMatchSettings = field(default_factory=CrossMatchSettings)
+    # ... kept only where the reference model is a smooth surface (their spot moves with the sun
+    # elsewhere; gtkit.sfm.tie_surface)
+    smooth_surface: SmoothSurfaceSettings = field(default_factory=SmoothSurfaceSettings)
 
 
 @dataclass
@@ -369,6 +374,16 @@ def _bundle_adjust(rec, ref_ids, settings: RegisterSettings, loss: str, covarian
     return summary, cov
 
 
+def _reference_model(paths) -> Path | None:
+    """The project's reference model, or None before one is built or imported."""
+    from ..export.sources import reference_model
+
+    try:
+        return reference_model(paths)
+    except GtkitError:
+        return None
+
+
 def point_reprojection_errors(rec, point_ids) -> np.ndarray:
     errs = []
     for pid in point_ids:
@@ -404,9 +419,13 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     if not ref_dir.is_dir():
         raise GtkitError("reference block missing: run `gtkit sfm DIR --block reference` first", ref_dir)
     seq_dirs = {s: P.stage(QUERIES_STAGE) / s / "model" for s in P.query_sequences()}
+    model = _reference_model(P) if settings.cross.enabled and settings.smooth_surface.enabled else None
     inputs = {"tiepoints": file_fingerprint(P.tiepoints),
               "reference": file_fingerprint(ref_dir / "images.bin"),
               "queries": {s: file_fingerprint(d / "images.bin") for s, d in seq_dirs.items()}}
+    if model is not None:   # the automatic ties it keeps depend on it
+        from ..export.sources import input_fingerprint_paths
+        inputs["model"] = [file_fingerprint(f) for f in input_fingerprint_paths(model)]
     if not force and stage_done(out, settings, inputs):
         import json
         return json.loads((out / "registration.json").read_text())
@@ -486,6 +505,13 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         qc.update(model_cameras(rec_q))
     auto = cross_matches(qp, qc, [P.stage(QUERIES_STAGE) / sq / "database.db" for sq in blocks], ref_rec,
                          ref_db, settings.cross, ref=ref_points.get("ref"))
+    n_auto_found = len(auto)
+    smooth = smooth_surface_filter(model, project.frame, settings.smooth_surface) if auto else None
+    if smooth is not None:
+        ids = sorted(auto)
+        keep = smooth(np.array([ref_rec.points3D[reference_point_of(t)].xyz for t in ids]))
+        auto = {t: auto[t] for t, k in zip(ids, keep) if k}
+        log.info("automatic tie points: %d of %d on smooth model surface, kept", len(auto), n_auto_found)
     clicks.update(auto)
     t_cm = time.time() - t_cm
     j = build_joint(ref_rec, blocks, clicks)
@@ -588,6 +614,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         "mean_reproj_px": float(np.mean(sfm_err)) if len(sfm_err) else None,
         "median_tiepoint_reproj_px": float(np.median(tie_err)) if tie_err else None,
         "n_tiepoints_in_ba": sum(1 for t in j.tie_pids if not t.startswith(AUTO_PREFIX)),
+        "n_auto_tiepoints_found": n_auto_found, "auto_tiepoints_on_smooth_surface_only": smooth is not None,
         "n_auto_tiepoints": len(auto), "n_auto_tiepoints_in_ba": sum(1 for t in j.tie_pids if t.startswith(AUTO_PREFIX)),
         "bad_tiepoints": bad, "tiepoints": tie_table,
         "ba_final_cost": float(summary.final_cost) if hasattr(summary, "final_cost") else None,
