@@ -35,8 +35,11 @@ def poisson(xyz: np.ndarray, normals: np.ndarray, settings: ModelSettings) -> tu
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     pc.normals = o3d.utility.Vector3dVector(normals)
     depth = settings.poisson_depth or poisson_depth_for(xyz, settings.voxel_m)
+    # one thread: Open3D's multi-threaded Poisson crashes at random (SIGSEGV inside
+    # CreateFromPointCloudPoisson; isl-org/Open3D#6828, mkazhdan/PoissonRecon#298; it killed a
+    # resumed `gtkit model build` in CI, stop 28); with one thread it is reported stable
     mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(pc, depth=depth,
-                                                                            linear_fit=True, n_threads=2)
+                                                                            linear_fit=True, n_threads=1)
     V = np.asarray(mesh.vertices)
     F = np.asarray(mesh.triangles)
     dist, _ = cKDTree(xyz).query(V, k=1, distance_upper_bound=settings.trim_m * 2)
