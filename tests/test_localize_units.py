@@ -332,3 +332,42 @@ def test_depth_files_round_trip_compactly_and_old_layouts_still_read(tmp_path):
     np.savez_compressed(tmp_path / "old.npz", depth_q=q, depth_scale=np.float64(step), valid_fraction=0.92)
     old = read_depth(tmp_path / "old.npz")
     assert np.array_equal(np.isnan(old), np.isnan(depth)) and np.nanmax(np.abs(old - back)) <= step * 1.01
+
+
+def test_feature_file_view_list_is_kept_beside_it_and_used_only_while_it_matches(tmp_path):
+    """Listing a feature file's views visits every group (1 ms a view): the list is kept beside the
+    file, and a list that no longer describes the file (replaced, or written by a run killed between
+    the two) is not trusted."""
+    import json
+
+    from gtkit.localize import feature_store
+    from gtkit.localize.features import Features
+
+    rng = np.random.default_rng(0)
+
+    def feats(n):
+        return {f"r{i // 4}/v{i}": Features(rng.random((5, 2)), rng.integers(0, 255, (5, 128), dtype=np.uint8), (64, 48))
+                for i in range(n, n + 8)}
+
+    path = tmp_path / "features.h5"
+    feature_store.write_part(path, feats(0))
+    feature_store.write_part(path, feats(8))
+    feature_store.merge_parts(path)
+    index = feature_store.views_index(path)
+    assert set(json.loads(index.read_text())["views"]) == set(feats(0)) | set(feats(8))
+    assert feature_store.stored_views(path) == set(feats(0)) | set(feats(8))
+    # the list is what is read: a view listed but not in the file shows it was used, not the file
+    rec = json.loads(index.read_text())
+    index.write_text(json.dumps({**rec, "views": rec["views"] + ["listed/only"]}))
+    assert "listed/only" in feature_store.stored_views(path)
+    index.write_text(json.dumps(rec))
+    # the file grown by a later run: the list follows it
+    feature_store.write_part(path, feats(16))
+    feature_store.merge_parts(path)
+    assert feature_store.stored_views(path) == set(feats(0)) | set(feats(8)) | set(feats(16))
+    # a list stamped for another file is ignored, the file scanned and the list rewritten
+    index.write_text(json.dumps({"stamp": [1, 2, 3], "views": ["stale"]}))
+    assert feature_store.stored_views(path) == set(feats(0)) | set(feats(8)) | set(feats(16))
+    assert "stale" not in json.loads(index.read_text())["views"]
+    index.write_text("{not json")
+    assert len(feature_store.stored_views(path)) == 24
