@@ -156,7 +156,7 @@ def test_one_query_click_per_tiepoint(tmp_path):
     est = read_poses(proj.paths.stage("register") / "poses.txt")
     m = medians(pose_errors(est, truth))
     # this scene's geometry allows ~0.1 m (the BA's own sigma): errors must agree with it
-    sig = np.median([res["images"][n]["sigma_pos_m"] for n in est])
+    sig = np.median([res["images"][n]["sigma_pos_ba_m"] for n in est])
     assert m["median_pos_err_m"] < 2.5 * sig and m["median_rot_err_deg"] < 0.15, (m, sig)
     # every gross mistake that reaches the BA is listed (one on a lone ref click may be undetectable
     # if along the epipolar line, but then it also does no harm)
@@ -205,7 +205,7 @@ def test_gross_click_mistakes_are_listed(tmp_path):
     res = register.run(proj)
     est = read_poses(proj.paths.stage("register") / "poses.txt")
     m = medians(pose_errors(est, truth))
-    sig = np.median([res["images"][n]["sigma_pos_m"] for n in est])
+    sig = np.median([res["images"][n]["sigma_pos_ba_m"] for n in est])
     assert m["median_pos_err_m"] < min(0.25, 2.5 * sig) and m["median_rot_err_deg"] < 0.1, (m, sig)
     assert bad <= set(res["bad_tiepoints"]), (bad, res["bad_tiepoints"].keys())
     assert res["median_tiepoint_reproj_px"] < 1.5
@@ -284,3 +284,33 @@ def test_triangulating_many_points_at_once_gives_what_one_at_a_time_gives():
             n_ok += 1
             n_dropped += int((~one.used).sum())
     assert n_ok >= 45 and n_dropped >= 8
+
+
+def test_systematic_swing_moves_the_centre_sideways_by_depth_times_tilt_and_keeps_the_scene_point():
+    """The reported covariance's systematic term: the camera tilted by swing/focal about its x and y
+    axes, its centre moved so that the scene point at its median depth stays where it is."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    R = dji_to_rotation(30.0, -45.0, 0.0)
+    C = np.array([100.0, -50.0, 150.0])
+    pose = Pose.from_center(R, C)
+    depth, focal, swing = 200.0, 800.0, 0.15
+    cov = register.swing_covariance(pose.t, depth, focal, swing)
+    tilt = swing / focal
+    # the centre moves sideways (camera x and y) by depth * tilt, not along the view
+    cc = Pose(pose.R, pose.t, cov).center_covariance()
+    np.testing.assert_allclose(pose.R @ cc @ pose.R.T, np.diag([(depth * tilt) ** 2] * 2 + [0.0]), atol=1e-12)
+    # sampled perturbations keep the point `depth` ahead in place (to first order) and turn the camera
+    X = pose.R.T @ (np.array([0.0, 0.0, depth]) - pose.t)
+    w, V = np.linalg.eigh(cov)                              # rank 2: sampled by its eigenvectors
+    L = V * np.sqrt(np.clip(w, 0.0, None))
+    moved, turned = [], []
+    for _ in range(200):
+        d = L @ rng.standard_normal(6)
+        R2 = Rotation.from_rotvec(d[:3]).as_matrix() @ pose.R
+        t2 = pose.t + d[3:]
+        moved.append(np.linalg.norm(R2 @ X + t2 - np.array([0.0, 0.0, depth])))
+        turned.append(np.linalg.norm(d[:3]))
+    assert max(moved) < 1e-2 * depth * tilt   # second order only: < 1 % of how far the centre moves
+    assert np.sqrt(np.mean(np.square(turned))) == pytest.approx(np.sqrt(2) * tilt, rel=0.15)
