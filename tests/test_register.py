@@ -314,3 +314,29 @@ def test_systematic_swing_moves_the_centre_sideways_by_depth_times_tilt_and_keep
         turned.append(np.linalg.norm(d[:3]))
     assert max(moved) < 1e-2 * depth * tilt   # second order only: < 1 % of how far the centre moves
     assert np.sqrt(np.mean(np.square(turned))) == pytest.approx(np.sqrt(2) * tilt, rel=0.15)
+
+
+def test_rough_surface_ties_are_dropped_only_for_the_sequences_they_bias():
+    """choose_smooth: a sequence whose two solutions (all ties / smooth-surface ties only) differ by
+    no more than their difference's spread if both were unbiased keeps all ties (they only add
+    precision); one that moved by several times that spread drops the rough ones (they were biased)."""
+    rng = np.random.default_rng(0)
+    sa, ss = 0.03, 0.05                  # sigma with all ties, with the smooth ones only
+    spread = np.sqrt(ss ** 2 - sa ** 2)  # 0.04 m
+    all_ties, smooth = {}, {}
+    for q, shift in (("seqA", 0.0), ("seqB", 0.25)):   # seqB: the rough ties pulled it 25 cm
+        for k in range(12):
+            c = rng.normal(size=3) * 10
+            n = f"queries/{q}/{k:04d}_W.jpg"
+            all_ties[n] = (c + np.array([shift, 0.0, 0.0]) + rng.normal(size=3) * spread / np.sqrt(3), sa)
+            smooth[n] = (c, ss)
+    got = register.choose_smooth(all_ties, smooth, 2.0)
+    assert not got["seqA"]["smooth_only"] and got["seqB"]["smooth_only"], got
+    assert got["seqA"]["limit_m"] == pytest.approx(2 * spread)
+    # the rough ties' clicks leave only the chosen sequences' photos
+    clicks = {"auto_1": {"reference/R1.jpg": (1, 2), "queries/seqA/0001_W.jpg": (3, 4), "queries/seqB/0001_W.jpg": (5, 6)},
+              "auto_2": {"reference/R1.jpg": (1, 2), "queries/seqB/0002_W.jpg": (7, 8)},
+              "tp1": {"reference/R1.jpg": (1, 2), "queries/seqB/0002_W.jpg": (7, 8)}}
+    out = register._without(clicks, {"auto_1", "auto_2"}, {"seqB"})
+    assert out == {"auto_1": {"reference/R1.jpg": (1, 2), "queries/seqA/0001_W.jpg": (3, 4)},
+                   "tp1": clicks["tp1"]}

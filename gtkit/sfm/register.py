@@ -37,7 +37,7 @@ from ..io.atomic import write_json
 from ..io.poses import write_covariances, write_intrinsics, write_poses
 from ..io.tiepoints import TiePoint, read_tiepoints
 from ..pose import Pose
-from ..project import Project, file_fingerprint, mark_stage_done, stage_done
+from ..project import PROJECT_FILE, Project, file_fingerprint, mark_stage_done, stage_done
 from . import quiet_colmap
 from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
@@ -434,6 +434,126 @@ def _count_query_images(P, seq_dirs) -> int:
     return n
 
 
+def _adjust(ref_rec, blocks, statuses, clicks: dict, auto: set[str], settings: RegisterSettings):
+    """The joint adjustment of the registered sequences (reference held) with the clicks and the
+    automatic ties in ``clicks``: passes a-c, the last with its covariance."""
+    j = build_joint(ref_rec, blocks, clicks)
+    # pass a: Sim(3) inliers and the automatic tie points (placed by their reference photos alone, so
+    # the query poses move to what both say before any automatic tie is judged by its residual)
+    first = {}
+    for st in statuses.values():
+        for s in st:
+            if s.inlier:
+                imgs = [n for n in s.ref_used + s.query_used if n in j.image_ids]
+                first[s.id] = (s.ref_xyz, imgs)
+    first.update(_placed_by_reference(j, {t: j.clicks[t] for t in auto if t in j.clicks}, settings))
+    j.set_ties(first)
+    _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
+    # pass b: every tie point re-triangulated from all its clicks with the refined poses
+    use, dropped = retriangulate_ties(j, settings)
+    j.set_ties(use)
+    _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
+    # pass c: drop what still disagrees, then the final least-squares BA (+ covariance)
+    for tid, pid in list(j.tie_pids.items()):
+        p = j.rec.points3D[pid]
+        for e in list(p.track.elements):
+            im = j.rec.images[e.image_id]
+            proj = im.project_point(p.xyz)
+            r = np.inf if proj is None else float(np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy))
+            if r > _max_px(tid, settings):
+                dropped.setdefault(tid, []).append({"image": im.name, "residual_px": r})
+                if im.points2D[e.point2D_idx].point3D_id != pid:   # (rare) no longer linked to it
+                    continue
+                if j.rec.points3D[pid].track.length() > 2:
+                    j.rec.delete_observation(e.image_id, e.point2D_idx)
+                else:
+                    j.rec.delete_point3D(pid)
+                    del j.tie_pids[tid]
+                    break
+    summary, cov = _bundle_adjust(j.rec, j.ref_ids, settings, "TRIVIAL", covariance=True)
+    return j, summary, cov, dropped
+
+
+def _without(clicks: dict, ties: set[str], seqs: set[str]) -> dict:
+    """``clicks`` with the given ties' clicks in photos of ``seqs`` removed (a tie left with no query
+    click is dropped)."""
+    prefixes = tuple(f"queries/{q}/" for q in seqs)
+    out = {}
+    for tid, obs in clicks.items():
+        if tid in ties:
+            obs = {n: xy for n, xy in obs.items() if not n.startswith(prefixes)}
+            if not any(n.startswith("queries/") for n in obs):
+                continue
+        out[tid] = obs
+    return out
+
+
+def _centres_sigmas(j: Joint, cov) -> dict[str, tuple[np.ndarray, float | None]]:
+    """Query photo -> (camera centre, the BA's position sigma or None)."""
+    out = {}
+    for iid in j.rec.reg_image_ids():
+        if iid in j.ref_ids:
+            continue
+        im = j.rec.images[iid]
+        c = None
+        if cov is not None:
+            try:
+                c = np.asarray(cov.get_cam_cov_from_world(iid))
+            except Exception:  # noqa: BLE001 - not every image gets one
+                c = None
+        ok = c is not None and c.shape == (6, 6) and np.all(np.isfinite(c))
+        pose = Pose.from_pycolmap(im.cam_from_world(), c if ok else None)
+        out[im.name] = (pose.center, float(np.sqrt(np.trace(pose.center_covariance()))) if ok else None)
+    return out
+
+
+def choose_smooth(all_ties: dict, smooth_only: dict, factor: float) -> dict[str, dict]:
+    """Per sequence, whether its rough-surface automatic ties are biased: the two solutions (all ties,
+    smooth-surface ties only) differ by more than ``factor`` x the spread their difference would have
+    if both were unbiased, sqrt(sigma_smooth^2 - sigma_all^2) (a Hausman test; medians over the
+    sequence's photos). Inputs: photo -> (centre, sigma) of each solution."""
+    seqs: dict[str, list[str]] = {}
+    for n in all_ties:
+        if n in smooth_only:
+            seqs.setdefault(n.split("/")[1], []).append(n)
+    out = {}
+    for q, names in sorted(seqs.items()):
+        d = float(np.median([np.linalg.norm(all_ties[n][0] - smooth_only[n][0]) for n in names]))
+        sa = [all_ties[n][1] for n in names if all_ties[n][1] is not None]
+        ss = [smooth_only[n][1] for n in names if smooth_only[n][1] is not None]
+        if not sa or not ss:
+            out[q] = {"smooth_only": True, "shift_m": d, "limit_m": None}
+            continue
+        spread = float(np.sqrt(max(np.median(ss) ** 2 - np.median(sa) ** 2, 0.0)))
+        out[q] = {"smooth_only": bool(d > factor * spread), "shift_m": d, "limit_m": factor * spread}
+    return out
+
+
+def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str], rough: set[str],
+                          settings: RegisterSettings):
+    """The joint adjustment, with the automatic ties on rough model surface (``rough``) kept only for
+    the sequences where they are not biased (``choose_smooth``); ``rough`` empty: one adjustment."""
+    if not rough:
+        return (*_adjust(ref_rec, blocks, statuses, clicks, auto, settings), {})
+    mode = settings.smooth_surface.choose
+    smooth_clicks = _without(clicks, rough, set(blocks))
+    if mode == "smooth":
+        return (*_adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings), {})
+    a = _adjust(ref_rec, blocks, statuses, clicks, auto, settings)
+    s = _adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings)
+    choice = choose_smooth(_centres_sigmas(a[0], a[2]), _centres_sigmas(s[0], s[2]), settings.smooth_surface.test_factor)
+    picked = {q for q, c in choice.items() if c["smooth_only"]}
+    for q, c in choice.items():
+        log.info("sequence %s: %s (the two solutions %.3f m apart, limit %s m)", q,
+                 "automatic ties on smooth surface only" if c["smooth_only"] else "all automatic ties",
+                 c["shift_m"], "-" if c["limit_m"] is None else f"{c['limit_m']:.3f}")
+    if not picked:
+        return (*a, choice)
+    if picked >= set(choice):
+        return (*s, choice)
+    return (*_adjust(ref_rec, blocks, statuses, _without(clicks, rough, picked), auto, settings), choice)
+
+
 # --- the stage ---------------------------------------------------------------------------------
 
 def run(project: Project | str | Path, settings: RegisterSettings | None = None, force: bool = False) -> dict:
@@ -442,6 +562,9 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     project = project if isinstance(project, Project) else Project.load(project)
     settings = settings or resolve(RegisterSettings(), "register", project)
     P = project.paths
+    if settings.smooth_surface.choose not in ("test", "smooth"):
+        raise GtkitError(f'[register.smooth_surface] choose = "{settings.smooth_surface.choose}": '
+                         'expected "test" or "smooth"', project.root / PROJECT_FILE)
     out = P.stage(STAGE)
     ref_dir = P.stage(REFERENCE_STAGE) / "model"
     if not ref_dir.is_dir():
@@ -535,47 +658,17 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
                          ref_db, settings.cross, ref=ref_points.get("ref"))
     n_auto_found = len(auto)
     smooth = smooth_surface_filter(model, project.frame, settings.smooth_surface) if auto else None
+    rough: set[str] = set()
     if smooth is not None:
         ids = sorted(auto)
         keep = smooth(np.array([ref_rec.points3D[reference_point_of(t)].xyz for t in ids]))
-        auto = {t: auto[t] for t, k in zip(ids, keep) if k}
-        log.info("automatic tie points: %d of %d on smooth model surface, kept", len(auto), n_auto_found)
+        rough = {t for t, k in zip(ids, keep) if not k}
+        log.info("automatic tie points: %d of %d on smooth model surface", len(auto) - len(rough), n_auto_found)
     clicks.update(auto)
     t_cm = time.time() - t_cm
-    j = build_joint(ref_rec, blocks, clicks)
-    # pass a: Sim(3) inliers and the automatic tie points (placed by their reference photos alone, so
-    # the query poses move to what both say before any automatic tie is judged by its residual)
-    first = {}
-    for st in statuses.values():
-        for s in st:
-            if s.inlier:
-                imgs = [n for n in s.ref_used + s.query_used if n in j.image_ids]
-                first[s.id] = (s.ref_xyz, imgs)
-    first.update(_placed_by_reference(j, {t: j.clicks[t] for t in auto if t in j.clicks}, settings))
-    j.set_ties(first)
-    _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
-    # pass b: every tie point re-triangulated from all its clicks with the refined poses
-    use, dropped = retriangulate_ties(j, settings)
-    j.set_ties(use)
-    _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
-    # pass c: drop what still disagrees, then the final least-squares BA (+ covariance)
-    for tid, pid in list(j.tie_pids.items()):
-        p = j.rec.points3D[pid]
-        for e in list(p.track.elements):
-            im = j.rec.images[e.image_id]
-            proj = im.project_point(p.xyz)
-            r = np.inf if proj is None else float(np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy))
-            if r > _max_px(tid, settings):
-                dropped.setdefault(tid, []).append({"image": im.name, "residual_px": r})
-                if im.points2D[e.point2D_idx].point3D_id != pid:   # (rare) no longer linked to it
-                    continue
-                if j.rec.points3D[pid].track.length() > 2:
-                    j.rec.delete_observation(e.image_id, e.point2D_idx)
-                else:
-                    j.rec.delete_point3D(pid)
-                    del j.tie_pids[tid]
-                    break
-    summary, cov = _bundle_adjust(j.rec, j.ref_ids, settings, "TRIVIAL", covariance=True)
+    j, summary, cov, dropped, auto_choice = _adjust_choosing_ties(ref_rec, blocks, statuses, clicks, set(auto), rough,
+                                                                 settings)
+    auto = {t: v for t, v in auto.items() if t in j.clicks}
     t_ba = time.time()
     rec = j.rec
     qids = [i for i in rec.reg_image_ids() if i not in j.ref_ids]
@@ -647,7 +740,9 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         "mean_reproj_px": float(np.mean(sfm_err)) if len(sfm_err) else None,
         "median_tiepoint_reproj_px": float(np.median(tie_err)) if tie_err else None,
         "n_tiepoints_in_ba": sum(1 for t in j.tie_pids if not t.startswith(AUTO_PREFIX)),
-        "n_auto_tiepoints_found": n_auto_found, "auto_tiepoints_on_smooth_surface_only": smooth is not None,
+        "n_auto_tiepoints_found": n_auto_found, "auto_tiepoints_on_smooth_surface_only": sorted(q for q, c in auto_choice.items() if c["smooth_only"])
+        if auto_choice else (smooth is not None and bool(rough) and settings.smooth_surface.choose == "smooth"),
+        "auto_ties_test_by_sequence": auto_choice,
         "n_auto_tiepoints": len(auto), "n_auto_tiepoints_in_ba": sum(1 for t in j.tie_pids if t.startswith(AUTO_PREFIX)),
         "bad_tiepoints": bad, "tiepoints": tie_table,
         "ba_final_cost": float(summary.final_cost) if hasattr(summary, "final_cost") else None,

@@ -34,6 +34,13 @@ class SmoothSurfaceSettings:
     max_rms_m: float = 0.10        # the model's heights about that plane
     max_off_m: float = 0.30        # the tie's own height off that plane (in the air: a canopy or an edge)
     resolution_m: float = 0.5      # height grid cell (coarsened on large sites, see MAX_GRID_CELLS)
+    # "test": per sequence, the ties off smooth surface are dropped only where they are biased: the
+    # joint adjustment with all ties and with the smooth ones only differ by more than test_factor x
+    # the spread their difference would have if both were unbiased (gtkit.sfm.register.choose_smooth).
+    # Measured against truth: on small seeds, dropping them everywhere cost up to 25 mm (the error
+    # grows with the sigma), on medium keeping them cost 46-52 mm. "smooth": always drop them.
+    choose: str = "test"
+    test_factor: float = 2.0
 
 
 MAX_GRID_CELLS = 64_000_000       # 8,000 x 8,000 cells: 256 MB of float32 heights
