@@ -494,17 +494,22 @@ def _centres_sigmas(j: Joint, cov) -> dict[str, tuple[np.ndarray, float | None]]
     for iid in j.rec.reg_image_ids():
         if iid in j.ref_ids:
             continue
-        im = j.rec.images[iid]
-        c = None
-        if cov is not None:
-            try:
-                c = np.asarray(cov.get_cam_cov_from_world(iid))
-            except Exception:  # noqa: BLE001 - not every image gets one
-                c = None
-        ok = c is not None and c.shape == (6, 6) and np.all(np.isfinite(c))
-        pose = Pose.from_pycolmap(im.cam_from_world(), c if ok else None)
-        out[im.name] = (pose.center, float(np.sqrt(np.trace(pose.center_covariance()))) if ok else None)
+        pose = _ba_pose(j.rec, cov, iid)
+        cc = pose.center_covariance()
+        out[j.rec.images[iid].name] = (pose.center, None if cc is None else float(np.sqrt(np.trace(cc))))
     return out
+
+
+def _ba_pose(rec, cov, iid: int) -> Pose:
+    """An image's pose with the BA's covariance (None where it has none or it is not finite)."""
+    c = None
+    if cov is not None:
+        try:
+            c = np.asarray(cov.get_cam_cov_from_world(iid))
+        except Exception:  # noqa: BLE001 - not every image gets one
+            c = None
+    ok = c is not None and c.shape == (6, 6) and np.all(np.isfinite(c))
+    return Pose.from_pycolmap(rec.images[iid].cam_from_world(), c if ok else None)
 
 
 def choose_smooth(all_ties: dict, smooth_only: dict, factor: float) -> dict[str, dict]:
@@ -684,14 +689,8 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             cnt[n] = cnt.get(n, 0) + 1
     for iid in qids:
         im = rec.images[iid]
-        c = None
-        if cov is not None:
-            try:
-                c = np.asarray(cov.get_cam_cov_from_world(iid))
-            except Exception:  # noqa: BLE001 - not every image gets one
-                c = None
-        ok = c is not None and c.shape == (6, 6) and np.all(np.isfinite(c))
-        pose = Pose.from_pycolmap(im.cam_from_world(), c if ok else None)
+        pose = _ba_pose(rec, cov, iid)
+        ok = pose.covariance is not None
         sigma_ba = float(np.sqrt(np.trace(pose.center_covariance()))) if ok else None
         if ok and settings.systematic_swing_px > 0:
             pose = Pose(pose.R, pose.t, pose.covariance + swing_covariance(
