@@ -495,9 +495,14 @@ def _centres_sigmas(j: Joint, cov) -> dict[str, tuple[np.ndarray, float | None]]
         if iid in j.ref_ids:
             continue
         pose = _ba_pose(j.rec, cov, iid)
-        cc = pose.center_covariance()
-        out[j.rec.images[iid].name] = (pose.center, None if cc is None else float(np.sqrt(np.trace(cc))))
+        out[j.rec.images[iid].name] = (pose.center, _position_sigma(pose))
     return out
+
+
+def _position_sigma(pose: Pose) -> float | None:
+    """The 1-sigma radius of the camera centre, sqrt(trace), or None without a covariance."""
+    cc = pose.center_covariance()
+    return None if cc is None else float(np.sqrt(np.trace(cc)))
 
 
 def _ba_pose(rec, cov, iid: int) -> Pose:
@@ -674,6 +679,9 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     j, summary, cov, dropped, auto_choice = _adjust_choosing_ties(ref_rec, blocks, statuses, clicks, set(auto), rough,
                                                                  settings)
     auto = {t: v for t, v in auto.items() if t in j.clicks}
+    # the sequences whose automatic ties off smooth surface were dropped
+    smooth_only = (sorted(blocks) if rough and settings.smooth_surface.choose == "smooth"
+                   else sorted(q for q, c in auto_choice.items() if c["smooth_only"]))
     t_ba = time.time()
     rec = j.rec
     qids = [i for i in rec.reg_image_ids() if i not in j.ref_ids]
@@ -691,7 +699,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         im = rec.images[iid]
         pose = _ba_pose(rec, cov, iid)
         ok = pose.covariance is not None
-        sigma_ba = float(np.sqrt(np.trace(pose.center_covariance()))) if ok else None
+        sigma_ba = _position_sigma(pose)
         if ok and settings.systematic_swing_px > 0:
             pose = Pose(pose.R, pose.t, pose.covariance + swing_covariance(
                 pose.t, _median_depth(rec, im), rec.cameras[im.camera_id].mean_focal_length(), settings.systematic_swing_px))
@@ -703,7 +711,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             info["resected"] = resected[im.name]
         if ok:
             covs[im.name] = pose.covariance
-            info["sigma_pos_m"] = float(np.sqrt(np.trace(pose.center_covariance())))
+            info["sigma_pos_m"] = _position_sigma(pose)
             info["sigma_rot_deg"] = float(np.degrees(np.sqrt(np.trace(pose.covariance[:3, :3]))))
             info["sigma_pos_ba_m"] = sigma_ba   # the final BA's alone, without the systematic swing
         per_image[im.name] = info
@@ -739,8 +747,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         "mean_reproj_px": float(np.mean(sfm_err)) if len(sfm_err) else None,
         "median_tiepoint_reproj_px": float(np.median(tie_err)) if tie_err else None,
         "n_tiepoints_in_ba": sum(1 for t in j.tie_pids if not t.startswith(AUTO_PREFIX)),
-        "n_auto_tiepoints_found": n_auto_found, "auto_tiepoints_on_smooth_surface_only": sorted(q for q, c in auto_choice.items() if c["smooth_only"])
-        if auto_choice else (smooth is not None and bool(rough) and settings.smooth_surface.choose == "smooth"),
+        "n_auto_tiepoints_found": n_auto_found, "auto_tiepoints_on_smooth_surface_only": smooth_only,
         "auto_ties_test_by_sequence": auto_choice,
         "n_auto_tiepoints": len(auto), "n_auto_tiepoints_in_ba": sum(1 for t in j.tie_pids if t.startswith(AUTO_PREFIX)),
         "bad_tiepoints": bad, "tiepoints": tie_table,
