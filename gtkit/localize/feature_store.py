@@ -64,11 +64,18 @@ def _complete_views(path: Path) -> set[str] | None:
 
     try:
         with h5py.File(path, "r") as h5:
-            views: set[str] = set()
-            h5.visititems(lambda name, obj: views.add(name) if isinstance(obj, h5py.Group) and "desc" in obj else None)
-            return views
+            return _views_in(h5)
     except (OSError, RuntimeError, KeyError, ValueError):
         return None
+
+
+def _views_in(h5) -> set[str]:
+    """The complete views of an open feature file."""
+    import h5py
+
+    views: set[str] = set()
+    h5.visititems(lambda name, obj: views.add(name) if isinstance(obj, h5py.Group) and "desc" in obj else None)
+    return views
 
 
 def stored_views(path: Path) -> set[str]:
@@ -116,9 +123,9 @@ def merge_parts(path: Path) -> None:
             shutil.copyfile(path, tmp)
         with h5py.File(tmp, "a") as out:
             for part in parts:
-                views = _complete_views(part) or set()
-                merged |= views
                 with h5py.File(part, "r") as h5:
+                    views = _views_in(h5)
+                    merged |= views
                     for name in sorted(views):
                         if name in out:
                             del out[name]
