@@ -86,14 +86,20 @@ def on_smooth_surface(xyz: np.ndarray, grid: HeightGrid, settings: SmoothSurface
     z[ok] = H[rr[ok], cc[ok]]
     full = np.isfinite(z).mean(axis=1) >= 0.8     # the disk mostly on the model
     keep = np.zeros(len(xyz), bool)
-    for i in np.flatnonzero(full):
+    idx = np.flatnonzero(full)
+    for s in range(0, len(idx), 65_536):             # every point's plane at once, in bounded chunks
+        i = idx[s:s + 65_536]
         f = np.isfinite(z[i])
-        coef, *_ = np.linalg.lstsq(A[f], z[i, f], rcond=None)
-        rms = float(np.sqrt(np.mean((A[f] @ coef - z[i, f]) ** 2)))
+        zi = np.where(f, z[i], 0.0)
+        w = f.astype(np.float64)
+        M = np.einsum("nj,ja,jb->nab", w, A, A)      # least squares over each disk's finite cells
+        coef = np.einsum("nab,nb->na", np.linalg.pinv(M), np.einsum("nj,ja->na", w * zi, A))
+        res_z = (coef @ A.T - zi) * w
+        rms = np.sqrt((res_z ** 2).sum(axis=1) / w.sum(axis=1))
         cx = grid.xmin + (col[i] + 0.5) * res
         cy = grid.ymax - (row[i] + 0.5) * res
-        off = abs(xyz[i, 2] - (coef[0] * (xyz[i, 0] - cx) + coef[1] * (xyz[i, 1] - cy) + coef[2]))
-        keep[i] = rms <= settings.max_rms_m and off <= settings.max_off_m
+        off = np.abs(xyz[i, 2] - (coef[:, 0] * (xyz[i, 0] - cx) + coef[:, 1] * (xyz[i, 1] - cy) + coef[:, 2]))
+        keep[i] = (rms <= settings.max_rms_m) & (off <= settings.max_off_m)
     return keep
 
 
