@@ -416,14 +416,60 @@ def overlay_file_name(image: str, mode: str) -> str:
     return image.replace("/", "__").rsplit(".", 1)[0] + f"_{mode}.png"
 
 
+PARTIAL = "alignment.partial.jsonl"   # one line an overlaid image, appended as the stage goes
+
+
+def _image_key(scene: OverlayScene, name: str, model_fp: str, settings: OverlaySettings) -> str:
+    """What an image's overlays depend on: model, settings, its camera and pose, the photo file."""
+    import hashlib
+    import json
+
+    pose, photo = scene.poses[name], scene.paths.images / name
+    st = photo.stat() if photo.is_file() else None
+    blob = json.dumps([model_fp, dataclasses.asdict(settings), scene.cameras[name].to_line(),
+                       np.round(pose.R, 12).tolist(), np.round(pose.t, 9).tolist(),
+                       [st.st_size, st.st_mtime_ns] if st else None])
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def _done_images(out: Path) -> dict[str, tuple[str, dict]]:
+    """name -> (key, alignment) of the images a previous run overlaid: its finished summary, then the
+    lines it appended before stopping (a torn last line is ignored)."""
+    import json
+
+    done = {}
+    try:
+        prev = json.loads((out / "alignment.json").read_text())
+        keys = prev.get("keys") or {}
+        done.update({n: (keys[n], a) for n, a in (prev.get("images") or {}).items() if n in keys})
+    except (OSError, ValueError, AttributeError):
+        pass
+    try:
+        for line in (out / PARTIAL).read_text().splitlines():
+            try:
+                rec = json.loads(line)
+                done[rec["name"]] = (rec["key"], rec["alignment"])
+            except (ValueError, KeyError, TypeError):
+                continue
+    except OSError:
+        pass
+    return done
+
+
 def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None, out_dir: str | Path | None = None,
                    settings: OverlaySettings | None = None, images: list[str] | None = None,
                    progress=None, model_path: str | Path | None = None) -> dict:
     """Write overlay PNGs for every posed image and ``alignment.json`` with the edge distance
-    of each; returns that summary. Default output: ``reports/overlays/``."""
+    of each; returns that summary. Default output: ``reports/overlays/``.
+
+    Resumes image by image: an image whose PNGs exist and whose model, settings, camera, pose and
+    photo file are those of the run that wrote them is not rendered again (its measure is reused)."""
+    import json
+
     import cv2
 
     from ..io.atomic import atomic_path, write_json
+    from ..localize.database import model_fingerprint
     from ..project import Project
 
     st = settings or OverlaySettings()
@@ -437,17 +483,37 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None,
     missing = [n for n in names if n not in scene.poses or n not in scene.cameras]
     if missing:
         raise GtkitError(f"{len(missing)} images have no pose or intrinsics, e.g. {missing[0]}", scene.pose_file)
-    per = {}
-    for k, name in enumerate(names):
-        photo, rgb, valid, s = scene.render(name, st.max_side)
-        for mode in st.modes:
-            img = compose(mode, photo, rgb, valid, alpha=st.alpha, position=st.position, tile=st.tile, sigma=st.sigma)
-            with atomic_path(out / overlay_file_name(name, mode)) as tmp:
-                cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
-        a = alignment(photo, rgb, valid, scale=s, sigma=st.sigma)
-        per[name] = a.as_dict()
-        if progress:
-            progress(k + 1, len(names), name, a)
+    mp = scene.model_path.resolve()
+    model_fp = f"{model_fingerprint(proj.paths.root, str(mp))}-{mp.stat().st_mtime_ns}"  # a rewritten model counts
+    done = _done_images(out)
+    per, keys, n_reused = {}, {}, 0
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / PARTIAL, "a") as partial:
+        for k, name in enumerate(names):
+            key = keys[name] = _image_key(scene, name, model_fp, st)
+            prev = done.get(name)
+            if prev and prev[0] == key and all((out / overlay_file_name(name, m)).is_file() for m in st.modes):
+                per[name] = prev[1]
+                n_reused += 1
+                if progress:
+                    progress(k + 1, len(names), name, Alignment(**{f: (np.nan if v is None else v)
+                                                                    for f, v in prev[1].items()}))
+                continue
+            photo, rgb, valid, s = scene.render(name, st.max_side)
+            for mode in st.modes:
+                img = compose(mode, photo, rgb, valid, alpha=st.alpha, position=st.position, tile=st.tile,
+                              sigma=st.sigma)
+                with atomic_path(out / overlay_file_name(name, mode)) as tmp:
+                    cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            a = alignment(photo, rgb, valid, scale=s, sigma=st.sigma)
+            per[name] = a.as_dict()
+            partial.write(json.dumps({"name": name, "key": key, "alignment": per[name]}) + "\n")
+            partial.flush()
+            if progress:
+                progress(k + 1, len(names), name, a)
+    if n_reused:
+        log.info("overlays: %d of %d images up to date, %d rendered", n_reused, len(names), len(names) - n_reused)
+
     def med(key):
         v = np.array([np.nan if d[key] is None else d[key] for d in per.values()], dtype=float)
         return float(np.nanmedian(v)) if np.isfinite(v).any() else None
@@ -459,8 +525,11 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None,
                            "both in full-resolution pixels (see gtkit.render.overlay)",
                "median_misalignment_px": med("misalignment_px"),
                "median_edge_distance_px": med("edge_distance_px"),
-               "images": per}
+               "n_rendered": len(names) - n_reused,
+               "images": per,
+               "keys": keys}
     from ..project import relative_paths
 
     write_json(out / "alignment.json", relative_paths(summary, proj.paths.root))  # paths relative to the project
+    (out / PARTIAL).unlink(missing_ok=True)
     return summary
