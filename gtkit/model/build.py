@@ -205,6 +205,24 @@ def _write_model(project: Project, mesh: Mesh, use: bool | None) -> Path:
     return out
 
 
+def _inputs(project: Project) -> dict:
+    block = block_dir(project)
+    return {"poses": file_fingerprint(block / "poses.txt"), "intrinsics": file_fingerprint(block / "intrinsics.txt")}
+
+
+def depth_folder(project: Project, settings: ModelSettings, method: str) -> Path:
+    """``work/model/depth/<key>/``: the depth maps of this block made by ``method`` with these settings
+    (a folder of another key is never read)."""
+    depth_keys = {k: v for k, v in settings_dict(settings).items()
+                  if k in ("max_image_size", "neighbours", "min_neighbours", "max_angle_deg", "baseline_ratio",
+                           "target_ratio", "max_disparities", "block_size", "pair_agree", "min_pair_agree",
+                           "sgbm_disparity_bias_px")}
+    if method != "sgbm":                  # (the SGBM maps' folder name is what it was before there was a choice)
+        depth_keys["method"] = method
+    key = settings_key({"depth": depth_keys, "inputs": _inputs(project), "version": DEPTH_VERSION})
+    return project.paths.stage(STAGE) / "depth" / key
+
+
 def run(project: Project | str | Path, settings: ModelSettings | None = None, *, force: bool = False,
         use: bool | None = None, show: bool = True) -> dict:
     """Build the reference model; returns the summary (also in ``work/model/stage.json``)."""
@@ -216,7 +234,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     block = block_dir(project)
     views, skipped = load_views(project, settings)
     n_photos = len(views) + len(skipped)
-    inputs = {"poses": file_fingerprint(block / "poses.txt"), "intrinsics": file_fingerprint(block / "intrinsics.txt")}
+    inputs = _inputs(project)
     if not force and stage_done(work, settings, inputs) and use is None:
         import json
 
@@ -233,13 +251,7 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
         log.warning("skipping %s: %s", n, why)
     if not neighbours:
         raise GtkitError("no photo has enough neighbours for stereo (see the reasons with -v)", block)
-    depth_keys = {k: v for k, v in settings_dict(settings).items()
-                  if k in ("max_image_size", "neighbours", "min_neighbours", "max_angle_deg", "baseline_ratio",
-                           "target_ratio", "max_disparities", "block_size", "pair_agree", "min_pair_agree",
-                           "sgbm_disparity_bias_px")}
-    if method != "sgbm":                  # (the SGBM maps' folder name is what it was before there was a choice)
-        depth_keys["method"] = method
-    folder = work / "depth" / settings_key({"depth": depth_keys, "inputs": inputs, "version": DEPTH_VERSION})
+    folder = depth_folder(project, settings, method)
     folder.mkdir(parents=True, exist_ok=True)
     if method == "patchmatch":
         failed = patchmatch.depth_maps(project, views, neighbours, settings, folder, block, show)

@@ -165,22 +165,12 @@ def patchmatch_options(settings: ModelSettings):
     return o
 
 
-def depth_maps(project, views: dict[str, View], neighbours: dict[str, list[str]], settings: ModelSettings,
-               folder: Path, block: Path, show: bool = True) -> dict[str, str]:
-    """The missing depth maps of ``folder`` by PatchMatch on the GPU; returns {photo: reason} of photos
-    without one."""
-    import pycolmap
-
+def collect(ws: Path, views: dict[str, View], todo: dict[str, list[str]], folder: Path) -> dict[str, str]:
+    """COLMAP's geometric depth maps of the workspace ``ws`` as gtkit's depth maps in ``folder`` (camera
+    z, metres, NaN where unknown); returns {photo: reason} of the photos in ``todo`` that have none."""
     from . import depth as D
 
-    todo = {n: nb for n, nb in neighbours.items() if not D.depth_file(folder, n).is_file()}
-    failed: dict[str, str] = {}
-    if not todo:
-        return failed
-    ws = folder.parent / (folder.name + ".patchmatch")
-    log.info("depth maps: PatchMatch on the GPU for %d photos (workspace %s)", len(todo), ws)
-    write_workspace(project, views, neighbours, block, ws)
-    pycolmap.patch_match_stereo(str(ws), options=patchmatch_options(settings))
+    failed = {}
     for n, nb in todo.items():
         f = ws / "stereo" / "depth_maps" / (workspace_name(n) + ".geometric.bin")
         if not f.is_file():
@@ -192,6 +182,25 @@ def depth_maps(project, views: dict[str, View], neighbours: dict[str, list[str]]
             raise GtkitError(f"PatchMatch depth map is {d.shape[1]}x{d.shape[0]}, the view {v.width}x{v.height}", f)
         d = np.where(d > 0, d, np.nan).astype(np.float32)
         D.write_depth(D.depth_file(folder, n), d, {"neighbours": nb, "method": "patchmatch"})
+    return failed
+
+
+def depth_maps(project, views: dict[str, View], neighbours: dict[str, list[str]], settings: ModelSettings,
+               folder: Path, block: Path, show: bool = True) -> dict[str, str]:
+    """The missing depth maps of ``folder`` by PatchMatch on the GPU; returns {photo: reason} of photos
+    without one."""
+    import pycolmap
+
+    from . import depth as D
+
+    todo = {n: nb for n, nb in neighbours.items() if not D.depth_file(folder, n).is_file()}
+    if not todo:
+        return {}
+    ws = folder.parent / (folder.name + ".patchmatch")
+    log.info("depth maps: PatchMatch on the GPU for %d photos (workspace %s)", len(todo), ws)
+    write_workspace(project, views, neighbours, block, ws)
+    pycolmap.patch_match_stereo(str(ws), options=patchmatch_options(settings))
+    failed = collect(ws, views, todo, folder)
     # the workspace holds every photo's photometric and geometric depth and normal maps (~40 MB a photo
     # at 1024 px): gone once gtkit has its depth maps (a killed run keeps it and COLMAP resumes in it)
     shutil.rmtree(ws, ignore_errors=True)
