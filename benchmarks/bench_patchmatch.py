@@ -99,6 +99,8 @@ def gpu(work: Path, out: Path) -> None:
     import cv2
     import pycolmap
 
+    from gtkit.io.colmap_dense import read_colmap_array   # numpy only: no other gtkit dependency there
+
     ws = work.parent / (work.name + "_ws")      # the workspace made again from what was carried
     print(f"pycolmap {pycolmap.__version__}, has_cuda {pycolmap.has_cuda}", flush=True)
     if not pycolmap.has_cuda:
@@ -126,7 +128,7 @@ def gpu(work: Path, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     steps, part, tar, size = {}, 0, None, 0
     for f in maps:
-        d = _read_colmap(f)
+        d = read_colmap_array(f)
         step = max(float(np.nanmax(np.where(d > 0, d, 0))), 1e-3) / STEPS
         q = np.where(d > 0, np.clip(np.rint(d / step), 1, 65535), 0).astype(np.uint16)
         ok, buf = cv2.imencode(".png", q, [cv2.IMWRITE_PNG_COMPRESSION, 9])
@@ -148,23 +150,11 @@ def gpu(work: Path, out: Path) -> None:
     print(f"packed into {part} file(s), {sum(p.stat().st_size for p in out.glob('depth_*.tar')) / 2 ** 20:.1f} MiB")
 
 
-def _read_colmap(path: Path) -> np.ndarray:
-    # the same reader as gtkit.model.patchmatch.read_colmap_array, here because the GPU machine has no gtkit deps
-    raw = Path(path).read_bytes()
-    head, pos = [], 0
-    for _ in range(3):
-        end = raw.index(b"&", pos)
-        head.append(int(raw[pos:end]))
-        pos = end + 1
-    w, h, c = head
-    return np.frombuffer(raw, "<f4", count=w * h * c, offset=pos).reshape(c, h, w)[0]
-
-
 def _unpack(results: list[Path], ws: Path) -> dict:
     """The packed maps back as COLMAP files in ``ws/stereo/depth_maps`` (depth = step x stored value)."""
     import cv2
 
-    from gtkit.model.patchmatch import write_colmap_array
+    from gtkit.io.colmap_dense import write_colmap_array
 
     info = {}
     for r in results:
@@ -196,7 +186,8 @@ def finish(project: Path, results: list[Path], copy: Path, resolution: float, ki
     from gtkit.model import build as B
     from gtkit.model import depth as D
     from gtkit.model import patchmatch
-    from gtkit.model.patchmatch import read_colmap_array, workspace_name
+    from gtkit.io.colmap_dense import read_colmap_array
+    from gtkit.model.patchmatch import workspace_name
     from gtkit.model.settings import ModelSettings
     from gtkit.model.texture import _gtkit_camera
     from gtkit.model.views import choose_neighbours, load_views

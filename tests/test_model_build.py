@@ -562,7 +562,7 @@ def test_patchmatch_workspace_is_the_views_as_a_colmap_model(built, tmp_path):
 
 def test_colmap_depth_map_files_round_trip(tmp_path):
     """COLMAP's dense array files (``W&H&C&`` then float32 planes, rows of W) as gtkit reads and writes them."""
-    from gtkit.model.patchmatch import read_colmap_array, write_colmap_array
+    from gtkit.io.colmap_dense import read_colmap_array, write_colmap_array
 
     d = np.arange(15, dtype=np.float32).reshape(3, 5)          # 3 rows of 5
     write_colmap_array(tmp_path / "d.bin", d)

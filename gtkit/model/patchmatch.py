@@ -32,6 +32,7 @@ import numpy as np
 
 from ..errors import GtkitError
 from ..io.atomic import write_bytes, write_text
+from ..io.colmap_dense import read_colmap_array
 from .settings import ModelSettings
 from .views import View, load_image
 
@@ -64,29 +65,6 @@ def resolve_method(setting: str) -> str:
 def workspace_name(name: str) -> str:
     """A photo's image name inside the workspace (a lossless PNG beside the photo's own name)."""
     return name + ".png"
-
-
-def read_colmap_array(path: Path) -> np.ndarray:
-    """A COLMAP dense array file (``W&H&C&`` then float32 little-endian, rows of W, channel planes):
-    (H, W) or (H, W, C)."""
-    raw = Path(path).read_bytes()
-    head, pos = [], 0
-    for _ in range(3):
-        end = raw.index(b"&", pos)
-        head.append(int(raw[pos:end]))
-        pos = end + 1
-    w, h, c = head
-    data = np.frombuffer(raw, "<f4", count=w * h * c, offset=pos)
-    a = data.reshape(c, h, w)
-    return a[0].copy() if c == 1 else np.moveaxis(a, 0, -1).copy()
-
-
-def write_colmap_array(path: Path, a: np.ndarray) -> None:
-    """The inverse of :func:`read_colmap_array` (COLMAP reads it as a depth or normal map)."""
-    a = np.asarray(a, np.float32)
-    planes = a[None] if a.ndim == 2 else np.moveaxis(a, -1, 0)
-    c, h, w = planes.shape
-    Path(path).write_bytes(f"{w}&{h}&{c}&".encode() + np.ascontiguousarray(planes).astype("<f4").tobytes())
 
 
 def _points_and_tracks(block: Path, views: dict[str, View]):
