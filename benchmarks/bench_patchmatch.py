@@ -95,7 +95,7 @@ def prepare(project: Path, work: Path) -> None:
 
 
 def gpu(work: Path, out: Path) -> None:
-    """On the GPU machine: PatchMatch over the workspace, the geometric maps packed into ``out``."""
+    """On the GPU machine: PatchMatch over the workspace, its photometric and geometric maps packed into ``out``."""
     import cv2
     import pycolmap
 
@@ -156,10 +156,11 @@ def _unpack(results: list[Path], ws: Path) -> dict:
 
     from gtkit.io.colmap_dense import write_colmap_array
 
-    info = {}
+    runs = []
     for r in results:
-        info.update(json.loads((r / "gpu.json").read_text()))
-        steps = info["steps"]
+        run = json.loads((r / "gpu.json").read_text())
+        steps = run.pop("steps")
+        runs.append(run)
         for tf in sorted(r.glob("depth_*.tar")):
             with tarfile.open(tf) as tar:
                 for m in tar.getmembers():
@@ -169,7 +170,7 @@ def _unpack(results: list[Path], ws: Path) -> dict:
                     dest = ws / "stereo" / "depth_maps" / name
                     dest.parent.mkdir(parents=True, exist_ok=True)
                     write_colmap_array(dest, d)
-    return info
+    return {"runs": runs}
 
 
 def _depth_stats(est: np.ndarray, ref: np.ndarray) -> tuple[float, np.ndarray]:
@@ -280,7 +281,7 @@ def finish(project: Path, results: list[Path], copy: Path, resolution: float, ki
               f"{a['p95']:.3f} | {m['bias']:+.3f} |")
     (copy / "reports").mkdir(exist_ok=True)
     (copy / "reports" / "bench_patchmatch.json").write_text(json.dumps(
-        {"gpu": {k: v for k, v in info.items() if k != "steps"}, "build": summary, "dsm": out,
+        {"gpu": info["runs"], "build": summary, "dsm": out,
          "depth": rows}, indent=1, default=float))
 
 
