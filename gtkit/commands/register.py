@@ -1,10 +1,13 @@
-"""``gtkit register DIR``: tie-point registration of each query block + joint bundle adjustment."""
+"""``gtkit register DIR``: registration of each query block (clicked tie points, else automatic matches)
++ joint bundle adjustment. Exit status 1 when a sequence could not be registered (each is named with
+its reason and what to click)."""
 from __future__ import annotations
 
 
 def register(sub):
-    p = sub.add_parser("register", help="register query blocks to the reference by tie points; joint BA; "
-                       "writes pseudo-GT poses")
+    p = sub.add_parser("register", help="register query blocks to the reference by tie points (a sequence without "
+                       "3 usable clicks: by its photos' automatic matches, guided by their GPS + gimbal metadata); "
+                       "joint BA; writes pseudo-GT poses")
     p.add_argument("project")
     p.add_argument("--sim3-max-error-m", type=float, default=None, help="Sim(3) RANSAC threshold (default 1.5 m)")
     p.add_argument("--tie-max-px", type=float, default=None, help="click residual threshold (default 4 px)")
@@ -33,6 +36,11 @@ def run(args):
         if info["status"] == "error":
             failed += 1
             print(f"{seq}: ERROR {info['error']}")
+        elif info.get("registered_by") == "automatic matches":
+            a = info["automatic"]
+            print(f"{seq}: registered by automatic matches ({info['clicks']}): {a['n_photos_agreeing']}/{a['n_photos']} "
+                  f"photos agree, {a['n_sim3_inliers']}/{a['n_point_pairs']} block-reference point pairs Sim(3) inliers, "
+                  f"RMSE {a['sim3_rmse_m']:.3f} m; {info['n_tiepoints_final_ba']} clicked tie points in the final BA")
         else:
             print(f"{seq}: registered, {info['n_sim3_inliers']}/{info['n_tiepoints']} tie points Sim(3) inliers, {info['n_tiepoints_final_ba']} in the final BA, "
                   f"Sim(3) RMSE {info['sim3_rmse_m']:.3f} m")

@@ -177,6 +177,67 @@ def match_photo(pose: Pose, cam: Camera, kq: np.ndarray, dq: np.ndarray, ref: Re
     return p2, rows[inl], kk[inl]
 
 
+def _match_wide(pose: Pose, cam: Camera, ref: ReferencePoints, kq: np.ndarray, dq: np.ndarray, radius: float,
+                ratio: float, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray]:
+    """(reference point rows, query keypoint indices) of the matches between the query keypoints and
+    the reference points projecting within ``radius`` of them from ``pose``: for each keypoint, the
+    ratio test among every such point (not only its 8 nearest, as :func:`_match` does), so a pose
+    off by a hundred pixels or more still finds its matches; one keypoint a reference point."""
+    uv, front = cam.project(pose.transform(ref.xyz))
+    ok = np.flatnonzero(front & cam.in_image(uv, -radius))
+    if len(ok) < 2:
+        return np.zeros(0, int), np.zeros(0, int)
+    to_cam = pose.center - ref.xyz[ok]
+    to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
+    cos = np.einsum("nkd,nd->nk", ref.dirs[ok], to_cam)
+    cos[ref.img[ok] < 0] = -2.0
+    dr = ref.desc[ok, np.argmax(cos, axis=1)].astype(np.float32)
+    uvo = uv[ok]
+    dr2 = (dr ** 2).sum(1)
+    rows, kks, dists = [], [], []
+    for a in range(0, len(kq), chunk):
+        q = dq[a:a + chunk]
+        d2 = (q ** 2).sum(1)[:, None] + dr2[None, :] - 2.0 * q @ dr.T
+        near = ((kq[a:a + chunk, None, :] - uvo[None, :, :]) ** 2).sum(2) <= radius ** 2
+        d2 = np.where(near, np.maximum(d2, 0.0), np.inf)
+        two = np.argpartition(d2, 1, axis=1)[:, :2] if d2.shape[1] > 1 else np.zeros((len(q), 2), int)
+        b = np.take_along_axis(d2, two, 1)
+        first = np.argmin(b, axis=1)
+        best, second = b[np.arange(len(q)), first], b[np.arange(len(q)), 1 - first]
+        keep = np.isfinite(best) & (best < ratio ** 2 * second)   # squared distances
+        rows.append(two[np.arange(len(q)), first][keep])
+        kks.append(np.flatnonzero(keep) + a)
+        dists.append(best[keep])
+    rows, kk, dist = np.concatenate(rows), np.concatenate(kks), np.concatenate(dists)
+    order = np.lexsort((dist, rows))     # one query keypoint a reference point: the closest descriptor
+    uniq = np.ones(len(order), bool)
+    uniq[1:] = rows[order][1:] != rows[order][:-1]
+    sel = order[uniq]
+    return ok[rows[sel]], kk[sel]
+
+
+def match_photo_wide(pose: Pose, cam: Camera, kq: np.ndarray, dq: np.ndarray, ref: ReferencePoints,
+                     s: CrossMatchSettings, radius_px: float) -> tuple[Pose | None, np.ndarray, np.ndarray]:
+    """:func:`match_photo` for a pose known only roughly (a query photo's GPS + gimbal metadata: metres
+    and degrees off, a hundred pixels or more): matches within ``radius_px`` of the projections
+    (:func:`_match_wide`), a PnP RANSAC without the pose as a guess, then :func:`match_photo`'s two
+    passes around the pose it found. Same return as :func:`match_photo`."""
+    none = (None, np.zeros(0, int), np.zeros(0, int))
+    if len(kq) < 8:
+        return none
+    rows, kk = _match_wide(pose, cam, ref, kq, dq, radius_px, s.ratio)
+    if len(rows) < max(6, s.min_inliers):
+        return none
+    und = cam.undistort_pixels(kq[kk])
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(ref.xyz[rows], und, cam.pinhole_part().K(), None, iterationsCount=2000,
+                                             reprojectionError=2 * s.pnp_px, confidence=0.9999,
+                                             flags=cv2.SOLVEPNP_EPNP)
+    if not ok or inl is None or len(inl) < s.min_inliers:
+        return none
+    coarse = Pose(cv2.Rodrigues(rvec)[0], tvec.ravel())
+    return match_photo(coarse, cam, kq, dq, ref, s)
+
+
 def photo_features(db_path: Path, name: str) -> tuple[np.ndarray, np.ndarray] | None:
     """(keypoints x, y; descriptors as float32) of one photo of a COLMAP database, None if absent."""
     with pycolmap.Database.open(db_path) as db:

@@ -42,8 +42,8 @@ from . import quiet_colmap
 from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
 from ..io.exif import prior_pose
-from .crossmatch import (AUTO_PREFIX, CrossMatchSettings, ReferencePoints, cross_matches, match_photo, photo_features,
-                         reference_point_of)
+from .crossmatch import (AUTO_PREFIX, CrossMatchSettings, ReferencePoints, cross_matches, match_photo,
+                         match_photo_wide, photo_features, reference_point_of)
 from .resect import candidate_priors, resect_sequence
 from .tie_surface import SmoothSurfaceSettings, smooth_surface_filter
 from .geometry import (RegistrationError, model_cameras, model_poses, robust_sim3, triangulate_clicks,
@@ -51,6 +51,19 @@ from .geometry import (RegistrationError, model_cameras, model_poses, robust_sim
 
 log = logging.getLogger(__name__)
 STAGE = "register"
+
+
+@dataclass
+class BootstrapSettings:
+    """``[register.bootstrap]``: a query sequence without 3 usable clicked tie points is placed by its
+    photos' automatic matches to the reference block's 3D points (:func:`bootstrap_sequence`)."""
+    enabled: bool = True
+    # how far (px) a reference point may project from its match around a photo's metadata pose:
+    # consumer GPS (5-15 m) and gimbal (1-3 deg) errors move the projections by 30-150 px
+    radius_px: float = 200.0
+    # photos whose matches must agree on one Sim(3) (one photo alone is not checked by another)
+    min_photos: int = 2
+    max_pairs: int = 2000          # query-reference 3D point pairs the Sim(3) RANSAC draws from
 
 
 @dataclass
@@ -81,6 +94,8 @@ class RegisterSettings:
     # medium seed 6 (position errors within 2 sigma 82 -> 99 %, rotation 75 -> 95 %), checked on
     # medium seed 5 (85 -> 96 %, 94 -> 100 %); small seeds 13-15 stay at 100 %. 0: the BA's alone.
     systematic_swing_px: float = 0.15
+    # sequences without enough usable clicks: placed by automatic matches to the reference points
+    bootstrap: BootstrapSettings = field(default_factory=BootstrapSettings)
 
 
 def swing_covariance(t: np.ndarray, depth_m: float, focal_px: float, swing_px: float) -> np.ndarray:
@@ -213,6 +228,121 @@ def register_sequence(seq: str, qrec: pycolmap.Reconstruction, ref_rec: pycolmap
         if not ok:
             s.reason, s.mistake = f"Sim(3) outlier ({r:.2f} m from the fit)", True
     return fit.tgt_from_src, status
+
+
+@dataclass
+class Bootstrap:
+    """What :func:`bootstrap_sequence` found: the Sim(3) (None when the sequence cannot be held),
+    the reason, and one record per photo."""
+    sim: pycolmap.Sim3d | None
+    reason: str
+    photos: dict[str, dict]
+    n_pairs: int = 0
+    n_inliers: int = 0
+    rmse_m: float | None = None
+
+    def record(self) -> dict:
+        matched = [n for n, r in self.photos.items() if r.get("n_matches")]
+        return {"n_photos": len(self.photos), "n_photos_matched": len(matched),
+                "n_photos_agreeing": sum(1 for r in self.photos.values() if r.get("agrees")),
+                "n_point_pairs": self.n_pairs, "n_sim3_inliers": self.n_inliers, "sim3_rmse_m": self.rmse_m,
+                "photos": self.photos, **({"reason": self.reason} if self.reason else {})}
+
+
+def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: RegisterSettings) -> Bootstrap:
+    """Place one query block in the reference frame without clicks.
+
+    Each registered photo is matched to the reference block's 3D points around the poses
+    ``priors(name) -> [(label, Pose)]`` gives (its GPS + gimbal metadata, its pose in the block's own
+    GPS georegistration); ``match(name, prior) -> (Pose | None, reference xyz (n, 3), query keypoint
+    indices)`` (:func:`gtkit.sfm.crossmatch.match_photo_wide`). Photos with no prior, or none that
+    matched, are tried again around their block pose moved by a first Sim(3) from the matched ones.
+    Each match whose query keypoint is a 3D point of the block is a pair (block point, reference
+    point); a robust Sim(3) (LO-RANSAC, ``sim3_max_error_m``) over all pairs places the block, and
+    it holds only where the inliers come from ``bootstrap.min_photos`` photos or more."""
+    b = settings.bootstrap
+    names = sorted(im.name for im in qrec.images.values() if im.has_pose)
+    photos: dict[str, dict] = {n: {} for n in names}
+    pairs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def pairs_of(name, X_ref, kk):
+        im = qrec.find_image_with_name(name)
+        src, tgt, pid = [], [], []
+        for X, k in zip(X_ref, kk):
+            p2 = im.points2D[int(k)]
+            if p2.has_point3D():
+                src.append(qrec.points3D[p2.point3D_id].xyz)
+                tgt.append(X)
+                pid.append(p2.point3D_id)
+        return np.array(src).reshape(-1, 3), np.array(tgt).reshape(-1, 3), np.array(pid, np.int64)
+
+    def try_photo(name, cands):
+        best = None
+        for label, prior in cands:
+            pose, X_ref, kk = match(name, prior)
+            if pose is not None and (best is None or len(kk) > len(best[2])):
+                best = (label, X_ref, kk)
+            if best is not None and label != "block GPS":   # the metadata pose found it: enough
+                break
+        if best is None:
+            return False
+        photos[name] = {"n_matches": int(len(best[2])), "guided_by": best[0]}
+        pairs[name] = pairs_of(name, best[1], best[2])
+        return True
+
+    for n in names:
+        cands = priors(n)
+        if not cands:
+            photos[n] = {"reason": "no GPS + gimbal metadata and no GPS georegistration of its block"}
+            continue
+        if not try_photo(n, cands):
+            photos[n] = {"reason": f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
+                                   "points around its metadata pose"}
+
+    def fit():
+        src = np.vstack([pairs[n][0] for n in pairs]) if pairs else np.zeros((0, 3))
+        tgt = np.vstack([pairs[n][1] for n in pairs]) if pairs else np.zeros((0, 3))
+        who = np.concatenate([np.full(len(pairs[n][0]), k) for k, n in enumerate(pairs)]) if pairs else np.zeros(0, int)
+        if len(src) > b.max_pairs:
+            pick = np.sort(np.random.default_rng(0).choice(len(src), b.max_pairs, replace=False))
+            src, tgt, who = src[pick], tgt[pick], who[pick]
+        return robust_sim3(src, tgt, settings.sim3_max_error_m, what="block-reference point matches"), src, tgt, who
+
+    # photos not matched around their own priors: around their block pose through a first Sim(3)
+    missing = [n for n in names if n not in pairs]
+    if pairs and missing:
+        try:
+            first = fit()[0].tgt_from_src
+        except RegistrationError:
+            first = None
+        if first is not None:
+            for n in missing:
+                im = qrec.find_image_with_name(n)
+                C = np.asarray(first * im.projection_center())
+                R = Pose.from_pycolmap(im.cam_from_world()).R @ np.asarray(first.rotation.matrix()).T
+                if try_photo(n, [("matched photos of its block", Pose.from_center(R, C))]):
+                    photos[n].pop("reason", None)
+    n_matched = len(pairs)
+    if n_matched < b.min_photos:
+        return Bootstrap(None, f"only {n_matched} of {len(names)} photos matched the reference points "
+                               f"({b.min_photos} needed)", photos)
+    try:
+        f, src, tgt, who = fit()
+    except RegistrationError as e:
+        return Bootstrap(None, f"{n_matched} of {len(names)} photos matched the reference points but {e}", photos)
+    agree = 0
+    for k, n in enumerate(pairs):
+        mine = who == k
+        n_in = int(f.inliers[mine].sum())
+        photos[n].update({"n_pairs": int(mine.sum()), "n_sim3_inliers": n_in,
+                          "agrees": bool(n_in >= 6 and n_in >= 0.5 * mine.sum())})
+        agree += photos[n]["agrees"]
+    out = Bootstrap(f.tgt_from_src, "", photos, int(len(src)), int(f.inliers.sum()), float(f.rmse_inliers_m))
+    if agree < b.min_photos:
+        out.sim = None
+        out.reason = (f"{n_matched} of {len(names)} photos matched the reference points, but only {agree} agree on "
+                      f"one Sim(3) ({b.min_photos} needed)")
+    return out
 
 
 # --- the joint model -----------------------------------------------------------------------
@@ -423,6 +553,16 @@ def point_reprojection_errors(rec, point_ids) -> np.ndarray:
     return np.asarray(errs)
 
 
+def _block_georegistered(block_json: Path) -> bool:
+    """Whether a query block's SfM was placed in the world by its photos' GPS (its record says so)."""
+    import json
+
+    if not block_json.is_file():
+        return False
+    b = json.loads(block_json.read_text())
+    return b.get("frame") == "project world frame" and "error" not in (b.get("georegistration") or {})
+
+
 def _count_query_images(P, seq_dirs) -> int:
     """All photos of the query blocks (registered or not), from each block's record."""
     import json
@@ -591,7 +731,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         import json
         return json.loads((out / "registration.json").read_text())
     t0 = time.time()
-    tiepoints = read_tiepoints(P.tiepoints)
+    tiepoints = read_tiepoints(P.tiepoints) if P.tiepoints.is_file() else []   # no file: no clicks
     ref_rec = pycolmap.Reconstruction(ref_dir)
     ref_cache = {"poses": model_poses(ref_rec), "cams": model_cameras(ref_rec)}
     seq_report, blocks, statuses, resected = {}, {}, {}, {}
@@ -623,22 +763,72 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             return pose, len(rows), ""
         return match
 
+    def bootstrap(seq: str, qrec: pycolmap.Reconstruction) -> Bootstrap:
+        """The sequence placed by its photos' automatic matches (no clicks needed)."""
+        if not settings.bootstrap.enabled:
+            return Bootstrap(None, "placing sequences by automatic matches is off ([register.bootstrap] enabled)", {})
+        if not settings.cross.enabled or not ref_db.is_file():
+            return Bootstrap(None, "automatic matching is off or the reference database is missing", {})
+        sdir = P.stage(QUERIES_STAGE) / seq
+        db = sdir / "database.db"
+        if not db.is_file():
+            return Bootstrap(None, "its sequence's feature database is missing", {})
+        georegistered = _block_georegistered(sdir / "block.json")
+        cams = model_cameras(qrec)
+
+        def priors(name):
+            out = []
+            meta = prior_pose(P.images / name, project.frame)
+            if meta is not None:
+                out.append(("metadata", meta))
+            if georegistered:
+                out.append(("block GPS", Pose.from_pycolmap(qrec.find_image_with_name(name).cam_from_world())))
+            return out
+
+        def match(name, prior):
+            feats = photo_features(db, name)
+            if feats is None:
+                return None, np.zeros((0, 3)), np.zeros(0, int)
+            ref = reference_points()
+            pose, rows, kk = match_photo_wide(prior, cams[name], *feats, ref, settings.cross, settings.bootstrap.radius_px)
+            return pose, ref.xyz[rows], kk
+
+        return bootstrap_sequence(qrec, priors, match, settings)
+
     for seq, d in seq_dirs.items():
         if not d.is_dir():
             seq_report[seq] = {"status": "error", "error": "no query-block model (run `gtkit sfm DIR --block queries`)"}
             continue
         qrec = pycolmap.Reconstruction(d)
+        n_clicked = sum(1 for tp in tiepoints if tp.in_block(f"queries/{seq}/"))
         try:
             sim, st = register_sequence(seq, qrec, ref_rec, tiepoints, settings, ref_cache)
+            boot = None
         except RegistrationError as e:
-            seq_report[seq] = {"status": "error", "error": str(e)}
-            log.error("sequence %s not registered: %s", seq, e)
-            continue
+            clicks_why = str(e) if n_clicked else "no clicked tie points"
+            boot = bootstrap(seq, qrec)
+            if boot.sim is None:
+                err = (f"{clicks_why}; automatic matches: {boot.reason}; "
+                       f"click 3 or more tie points in its photos (queries/{seq}/) and the reference photos "
+                       "(`gtkit annotate DIR`)")
+                seq_report[seq] = {"status": "error", "error": err, "needs_clicks": True,
+                                   "clicks": clicks_why, "automatic": boot.record()}
+                log.error("sequence %s not registered: %s", seq, err)
+                continue
+            sim, st = boot.sim, []
+            log.info("sequence %s: placed by automatic matches (%s): %d of %d photos agree, Sim(3) RMSE %.2f m",
+                     seq, clicks_why,
+                     boot.record()["n_photos_agreeing"], len(boot.photos), boot.rmse_m)
         qrec.transform(sim)
         blocks[seq], statuses[seq] = qrec, st
-        seq_report[seq] = {"status": "registered", "scale": float(sim.scale),
-                           "n_tiepoints": len(st), "n_sim3_inliers": sum(s.inlier for s in st),
-                           "sim3_rmse_m": float(np.sqrt(np.mean([s.sim3_residual_m ** 2 for s in st if s.inlier])))}
+        if boot is None:
+            seq_report[seq] = {"status": "registered", "registered_by": "clicked tie points", "scale": float(sim.scale),
+                               "n_tiepoints": len(st), "n_sim3_inliers": sum(s.inlier for s in st),
+                               "sim3_rmse_m": float(np.sqrt(np.mean([s.sim3_residual_m ** 2 for s in st if s.inlier])))}
+        else:
+            seq_report[seq] = {"status": "registered", "registered_by": "automatic matches", "scale": float(sim.scale),
+                               "n_tiepoints": n_clicked, "n_sim3_inliers": 0, "sim3_rmse_m": None,
+                               "clicks": clicks_why, "automatic": boot.record()}
         # photos the sequence's SfM left out: resected from their clicks, then adjusted with the rest
         res = resect_sequence(seq, qrec, P.stage(QUERIES_STAGE) / seq / "block.json", P.images, tiepoints,
                               lambda obs: _place(obs, ref_cache["poses"], ref_cache["cams"], ref_rec,

@@ -67,6 +67,8 @@ def collect(project: Project) -> dict:
                                              "n_registered", "n_images", "sequences", "bad_tiepoints",
                                              "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba")})
         rep["per_image"] = {n: dict(v) for n, v in reg.get("images", {}).items()}
+        rep["sequences_needing_clicks"] = {q: s["error"] for q, s in (reg.get("sequences") or {}).items()
+                                           if s.get("needs_clicks")}
     else:
         rep.update({"median_reproj_px": None, "median_tiepoint_reproj_px": None, "n_registered": 0, "n_images": 0,
                     "per_image": {}})
@@ -107,6 +109,18 @@ def scene_links(folder: Path) -> list[str]:
     return ["", "## 3D scene (`gtkit view`)", ""] + [f"![{n}]({n})" for n in shots] if shots else []
 
 
+def _sequence_line(s: dict) -> str:
+    if s["status"] == "error":
+        return f"ERROR: {s['error']}"
+    if s.get("registered_by") == "automatic matches":
+        a = s["automatic"]
+        return (f"registered by automatic matches ({s.get('clicks')}); {a['n_photos_agreeing']}/{a['n_photos']} photos "
+                f"agree, {a['n_sim3_inliers']}/{a['n_point_pairs']} block-reference point pairs Sim(3) inliers, RMSE "
+                f"{_fmt(a.get('sim3_rmse_m'))} m; {s.get('n_tiepoints_final_ba')} clicked tie points in the final BA")
+    return (f"registered; {s['n_sim3_inliers']}/{s['n_tiepoints']} tie points Sim(3) inliers, "
+            f"{s.get('n_tiepoints_final_ba')} in the final BA, Sim(3) RMSE {s['sim3_rmse_m']:.3f} m")
+
+
 def _markdown(rep: dict, folder: Path, checks: dict) -> str:
     L = [f"# Pseudo-GT report: {rep['project']}", ""]
     L += ["| figure | value |", "|---|---|",
@@ -131,11 +145,15 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
             L.append(f"| {n} | {_fmt(g.get('dx_m'))} | {_fmt(g.get('dy_m'))} | {_fmt(g.get('dz_m'))} | "
                      f"{_fmt(g.get('err_m'))} | {g.get('clicks_used', '–')}/{g.get('clicks_total', '–')} |"
                      if g["status"] == "ok" else f"| {n} | {g['reason']} | | | | |")
+    need = rep.get("sequences_needing_clicks") or {}
+    if need:
+        L += ["", "## Sequences that need clicks", "",
+              "Their photos' metadata and automatic matches could not place them; click tie points there "
+              "(`gtkit annotate DIR`) and run `gtkit register DIR` again.", ""]
+        L += [f"- **{seq}**: {why}" for seq, why in need.items()]
     L += ["", "## Sequences", ""]
     for seq, s in (rep.get("sequences") or {}).items():
-        L.append(f"- **{seq}**: " + (f"ERROR: {s['error']}" if s["status"] == "error" else
-                                     f"registered; {s['n_sim3_inliers']}/{s['n_tiepoints']} tie points Sim(3) inliers, {s.get('n_tiepoints_final_ba')} in the final BA, "
-                                     f"Sim(3) RMSE {s['sim3_rmse_m']:.3f} m"))
+        L.append(f"- **{seq}**: " + _sequence_line(s))
     for seq, b in (rep.get("query_blocks") or {}).items():
         for n, why in (b.get("unregistered") or {}).items():
             L.append(f"  - not in the {seq} block: {n}: {why}")
