@@ -59,7 +59,8 @@ class BootstrapSettings:
     photos' automatic matches to the reference block's 3D points (:func:`bootstrap_sequence`)."""
     enabled: bool = True
     # how far (px) a reference point may project from its match around a photo's metadata pose:
-    # consumer GPS (5-15 m) and gimbal (1-3 deg) errors move the projections by 30-150 px
+    # consumer GPS (5-15 m) and gimbal (1-3 deg) errors move the projections by 30-150 px; a photo
+    # that finds nothing is tried again at twice this
     radius_px: float = 200.0
     # photos whose matches must agree on one Sim(3) (one photo alone is not checked by another)
     min_photos: int = 2
@@ -567,10 +568,13 @@ def _count_query_images(P, seq_dirs) -> int:
     """All photos of the query blocks (registered or not), from each block's record."""
     import json
 
+    from ..project import Project
+    from ..queries import query_photos
+
     n = 0
     for seq, d in seq_dirs.items():
         f = d.parent / "block.json"
-        n += json.loads(f.read_text())["n_images"] if f.is_file() else len(list((P.query_images / seq).glob("*_W.*")))
+        n += json.loads(f.read_text())["n_images"] if f.is_file() else len(query_photos(Project.load(P.root), seq))
     return n
 
 
@@ -790,7 +794,10 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             if feats is None:
                 return None, np.zeros((0, 3)), np.zeros(0, int)
             ref = reference_points()
-            pose, rows, kk = match_photo_wide(prior, cams[name], *feats, ref, settings.cross, settings.bootstrap.radius_px)
+            for radius in (settings.bootstrap.radius_px, 2 * settings.bootstrap.radius_px):   # then a wider search
+                pose, rows, kk = match_photo_wide(prior, cams[name], *feats, ref, settings.cross, radius)
+                if pose is not None:
+                    break
             return pose, ref.xyz[rows], kk
 
         return bootstrap_sequence(qrec, priors, match, settings)

@@ -1,0 +1,82 @@
+"""`gtkit register` without clicks, on the tiny sample (real photos, SIFT, pycolmap): each query
+sequence is placed by its photos' automatic matches to the reference points, guided by their GPS +
+gimbal metadata, and judged against the sample's truth; a sequence that cannot be placed is named
+with its reason. About a minute on 2 cores (the SfM of the tiny sample is most of it)."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from gtkit.cli import main as cli
+from gtkit.evaluate import gt_report
+from gtkit.evaluate.poses import pose_errors
+from gtkit.io.poses import read_poses
+from gtkit.project import Project
+from gtkit.sfm import register
+from gtkit.sfm.blocks import run_queries, run_reference
+from gtkit.synth.variants import strip_metadata
+
+
+@pytest.fixture(scope="module")
+def no_clicks(tiny_sample, tmp_path_factory):
+    """The tiny sample without its tiepoints.json, its reference and query blocks built."""
+    root = tmp_path_factory.mktemp("clickfree") / "site"
+    shutil.copytree(tiny_sample[0], root, ignore=shutil.ignore_patterns("work", "reports", "exports"))
+    (root / "tiepoints.json").unlink()
+    run_reference(root)
+    run_queries(root)
+    return root
+
+
+def test_register_without_tiepoints_places_every_sequence(no_clicks, tmp_path):
+    root = tmp_path / "site"
+    shutil.copytree(no_clicks, root)
+    res = register.run(root)
+    seqs = res["sequences"]
+    assert seqs and all(s["status"] == "registered" and s["registered_by"] == "automatic matches"
+                        for s in seqs.values()), seqs
+    for s in seqs.values():
+        a = s["automatic"]
+        assert a["n_photos_agreeing"] >= 2 and a["sim3_rmse_m"] < 1.5, a
+    assert res["n_registered"] == res["n_images"] >= 9
+    truth = read_poses(root / "truth" / "poses.txt")
+    est = read_poses(root / "work" / "register" / "poses.txt")
+    err = pose_errors(est, truth, sorted(est))
+    pos = np.array([e["pos_err_m"] for e in err.values()])
+    rot = np.array([e["rot_err_deg"] for e in err.values()])
+    # tiny photos (640 x 480, ~0.2 m a pixel on the ground); with the sample's clicks: ~0.2 m median
+    assert np.median(pos) < 0.30 and pos.max() < 1.0, pos
+    assert np.median(rot) < 0.15 and rot.max() < 0.5, rot
+    rep = gt_report.run(Project.load(root))
+    assert rep["sequences_needing_clicks"] == {} and rep["median_pos_err_m"] == pytest.approx(np.median(pos))
+
+
+def test_a_sequence_that_cannot_be_placed_is_named_with_its_reason(no_clicks, tmp_path, capsys):
+    """seq2's photos lose their GPS and gimbal tags: its block cannot be georegistered and nothing
+    guides its matching. It is named, with why and what to click; the others still register."""
+    root = tmp_path / "site"
+    shutil.copytree(no_clicks, root)
+    for p in sorted((root / "images" / "queries" / "seq2").glob("*.jpg")):
+        strip_metadata(p, gps=True, focal=False)
+    run_queries(root, sequences=["seq2"], force=True)
+    assert cli(["register", str(root)]) == 1
+    out = capsys.readouterr().out
+    res = json.loads((root / "work" / "register" / "registration.json").read_text())
+    s2 = res["sequences"]["seq2"]
+    assert s2["status"] == "error" and s2["needs_clicks"]
+    assert "no clicked tie points" in s2["error"] and "0 of 3 photos matched the reference points" in s2["error"]
+    assert "click 3 or more tie points in its photos (queries/seq2/)" in s2["error"]
+    assert all("no GPS + gimbal metadata" in p["reason"] for p in s2["automatic"]["photos"].values())
+    assert f"seq2: ERROR {s2['error']}" in out
+    assert {q for q, s in res["sequences"].items() if s["status"] == "registered"} == {"seq1", "seq3"}
+    est = read_poses(root / "work" / "register" / "poses.txt")
+    truth = read_poses(root / "truth" / "poses.txt")
+    assert est and not any(n.startswith("queries/seq2/") for n in est)
+    assert np.median([e["pos_err_m"] for e in pose_errors(est, truth, sorted(est)).values()]) < 0.30
+    rep = gt_report.run(Project.load(root))
+    assert rep["sequences_needing_clicks"] == {"seq2": s2["error"]}
+    md = (root / "reports" / "gt_report.md").read_text()
+    assert "## Sequences that need clicks" in md and f"- **seq2**: {s2['error']}" in md
