@@ -41,7 +41,7 @@ from ..project import PROJECT_FILE, Project, file_fingerprint, mark_stage_done, 
 from . import quiet_colmap
 from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
-from ..io.exif import prior_pose
+from ..io.exif import prior_pose, read_photo_meta
 from .crossmatch import (AUTO_PREFIX, CrossMatchSettings, ReferencePoints, cross_matches, match_photo,
                          match_photo_wide, photo_features, reference_point_of)
 from .resect import candidate_priors, resect_sequence
@@ -65,6 +65,13 @@ class BootstrapSettings:
     # photos whose matches must agree on one Sim(3) (one photo alone is not checked by another)
     min_photos: int = 2
     max_pairs: int = 2000          # query-reference 3D point pairs the Sim(3) RANSAC draws from
+    # a matched photo's pose farther than this from the prior that guided it is a false match
+    max_offset_m: float = 60.0
+    # photos with GPS but no gimbal attitude (and no usable block pose): attitudes searched at their
+    # GPS position, on up to ``search_photos`` photos of the sequence until one matches
+    search_photos: int = 3
+    search_yaw_step_deg: float = 20.0
+    search_pitches_deg: list = field(default_factory=lambda: [-25.0, -45.0, -65.0])
 
 
 @dataclass
@@ -250,7 +257,8 @@ class Bootstrap:
                 "photos": self.photos, **({"reason": self.reason} if self.reason else {})}
 
 
-def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: RegisterSettings) -> Bootstrap:
+def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: RegisterSettings,
+                       search=None) -> Bootstrap:
     """Place one query block in the reference frame without clicks.
 
     Each registered photo is matched to the reference block's 3D points around the poses
@@ -258,6 +266,10 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
     GPS georegistration); ``match(name, prior) -> (Pose | None, reference xyz (n, 3), query keypoint
     indices)`` (:func:`gtkit.sfm.crossmatch.match_photo_wide`). Photos with no prior, or none that
     matched, are tried again around their block pose moved by a first Sim(3) from the matched ones.
+    Where no photo matched at all, ``search(name) -> [(label, Pose)]`` (a photo's GPS position with
+    a grid of attitudes: no gimbal tags) is tried on up to ``bootstrap.search_photos`` photos, the
+    first that matches ending the search. A match farther than ``bootstrap.max_offset_m`` from the
+    pose that guided it is taken for a false one.
     Each match whose query keypoint is a 3D point of the block is a pair (block point, reference
     point); a robust Sim(3) (LO-RANSAC, ``sim3_max_error_m``) over all pairs places the block, and
     it holds only where the inliers come from ``bootstrap.min_photos`` photos or more."""
@@ -281,6 +293,8 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
         best = None
         for label, prior in cands:
             pose, X_ref, kk = match(name, prior)
+            if pose is not None and np.linalg.norm(pose.center - prior.center) > b.max_offset_m:
+                pose = None   # matched far from where its metadata put it: a false match
             if pose is not None and (best is None or len(kk) > len(best[2])):
                 best = (label, X_ref, kk)
             if best is not None and label != "block GPS":   # the metadata pose found it: enough
@@ -299,6 +313,17 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
         if not try_photo(n, cands):
             photos[n] = {"reason": f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
                                    "points around its metadata pose"}
+    if not pairs and search is not None:   # no attitude to guide any photo: searched at its GPS position
+        tried = 0
+        for n in names:
+            cands = search(n)
+            if not cands or tried >= b.search_photos:
+                continue
+            tried += 1
+            if try_photo(n, cands):
+                break
+            photos[n] = {"reason": (photos[n]["reason"] + "; " if photos[n].get("reason") else "")
+                         + f"no match around its GPS position at any of {len(cands)} searched attitudes"}
 
     def fit():
         src = np.vstack([pairs[n][0] for n in pairs]) if pairs else np.zeros((0, 3))
@@ -800,7 +825,19 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
                     break
             return pose, ref.xyz[rows], kk
 
-        return bootstrap_sequence(qrec, priors, match, settings)
+        def search(name):
+            try:
+                m = read_photo_meta(P.images / name)
+            except GtkitError:
+                return []
+            if not m.has_gps or m.altitude is None:
+                return []
+            C = project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
+            b = settings.bootstrap
+            return [(f"GPS, attitude searched (yaw {yaw:.0f}, pitch {pitch:.0f})", Pose.from_dji(yaw, pitch, 0.0, C))
+                    for pitch in b.search_pitches_deg for yaw in np.arange(0.0, 360.0, b.search_yaw_step_deg)]
+
+        return bootstrap_sequence(qrec, priors, match, settings, search)
 
     for seq, d in seq_dirs.items():
         if not d.is_dir():
