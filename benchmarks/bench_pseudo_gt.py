@@ -29,6 +29,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from gtkit.evaluate import gt_report as report  # noqa: E402
+from gtkit.project import Project  # noqa: E402
+from gtkit.settings import resolve  # noqa: E402
 from gtkit.sfm import blocks, register  # noqa: E402
 from pipelines.pseudo_gt import main as pseudo_gt  # noqa: E402
 
@@ -58,9 +60,7 @@ def bench(root: Path, args) -> None:
     tp = root / "tiepoints.json"
     if args.no_clicks and tp.is_file():
         tp.replace(root / "tiepoints.json.off")
-    s = blocks.SfmSettings()
-    if args.gps_inlier_m:
-        s.georegister.gps_inlier_m = args.gps_inlier_m
+    s = resolve(blocks.SfmSettings(), "sfm", Project.load(root), {"georegister.gps_inlier_m": args.gps_inlier_m})
     t = time.time()
     out = pseudo_gt(str(root), s, rep=report.ReportSettings(args.point_cloud), force=args.force)
     if not tp.is_file():   # the pipeline registers only where tie points were clicked

@@ -194,11 +194,12 @@ def _match_wide(pose: Pose, cam: Camera, ref: ReferencePoints, kq: np.ndarray, d
     dr = ref.desc[ok, np.argmax(cos, axis=1)].astype(np.float32)
     uvo = uv[ok]
     dr2 = (dr ** 2).sum(1)
+    uv2 = (uvo ** 2).sum(1)
     rows, kks, dists = [], [], []
     for a in range(0, len(kq), chunk):
-        q = dq[a:a + chunk]
+        q, k = dq[a:a + chunk], kq[a:a + chunk]
         d2 = (q ** 2).sum(1)[:, None] + dr2[None, :] - 2.0 * q @ dr.T
-        near = ((kq[a:a + chunk, None, :] - uvo[None, :, :]) ** 2).sum(2) <= radius ** 2
+        near = (k ** 2).sum(1)[:, None] + uv2[None, :] - 2.0 * k @ uvo.T <= radius ** 2
         d2 = np.where(near, np.maximum(d2, 0.0), np.inf)
         two = np.argpartition(d2, 1, axis=1)[:, :2] if d2.shape[1] > 1 else np.zeros((len(q), 2), int)
         b = np.take_along_axis(d2, two, 1)
