@@ -1,9 +1,15 @@
 """The reference block on sample-site variants that reproduce real photo sets' failures, against truth.
 
-For each seed and variant (see gtkit.synth.variants: no-gps, no-focal, flat-gcps, checkpoints and
-combinations joined by '+'), a fresh sample is generated, the variant applied, and
-``gtkit sfm --block reference`` run; the table gives registered photos, models, median camera
-position / rotation error vs truth, GCP and check-point residual medians, and seconds.
+For each seed and variant (see gtkit.synth.variants: no-gps, no-focal, flat-gcps, checkpoints,
+no-gcps, no-attitude, consumer-gps, ... and combinations joined by '+'), a fresh sample is generated,
+the variant applied (its GPS errors drawn from the seed), and ``gtkit sfm --block reference`` run;
+the table gives registered photos, models, median camera position / rotation error vs truth, the
+block frame's tilt and heading against the true world, GCP and check-point residual medians, how
+the block was fitted (free Sim(3) or gravity-held) and seconds. A refused block shows its one line.
+
+Consumer sites (issue 33):
+    python benchmarks/bench_real_sites.py --preset tiny --seeds 0 1 2 \
+        --variants no-gcps consumer-gps+no-gcps consumer-gps+no-gcps+no-focal no-attitude+no-gcps
 
     python benchmarks/bench_real_sites.py --preset tiny --seeds 0 1 2 \
         --variants base no-gps flat-gcps no-gps+flat-gcps no-focal no-gps+no-focal+flat-gcps
@@ -36,10 +42,14 @@ def evaluate(project: Path) -> dict:
     pf = project / "work/sfm_reference/poses.txt"
     geo = b.get("georegistration", {})
     if pf.is_file() and "error" not in geo:
+        from gtkit.evaluate.poses import block_frame_errors
+
         est, truth = read_poses(pf), read_poses(project / "truth/poses.txt")
         m = medians(pose_errors(est, truth, [n for n in est if n in truth]))
-        out.update(pos_m=m["median_pos_err_m"], rot_deg=m["median_rot_err_deg"])
+        out.update(pos_m=m["median_pos_err_m"], rot_deg=m["median_rot_err_deg"], **block_frame_errors(est, truth))
+    fit = geo.get("fit") or {}
     out.update(gcp_m=geo.get("gcp_median_err_m"), check_m=geo.get("checkpoint_median_err_m"),
+               fit=fit.get("mode"), share=(geo.get("gps_quality") or {}).get("share_kept"),
                error=geo.get("error") or b.get("error"))
     return out
 
@@ -56,7 +66,7 @@ def run_one(preset: str, seed: int, variant: str, code: Path, work: Path) -> dic
         from gtkit.synth.variants import apply_variant
 
         for v in variant.split("+"):
-            apply_variant(proj, v)
+            apply_variant(proj, v, seed=seed)
     t = time.time()
     r = subprocess.run(py + ["sfm", str(proj), "--block", "reference"], env=env, capture_output=True, text=True,
                        cwd=code)  # python -m puts the working folder first on sys.path
@@ -84,18 +94,21 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     work = a.work or Path(tempfile.mkdtemp(prefix="bench_real_sites_"))
     rows = []
-    print("| variant | seed | registered | models | position err (m) | rotation err (deg) | GCP median (m) | check points (m) | s | error |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| variant | seed | registered | position err (m) | rotation err (deg) | tilt (deg) | heading (deg) | "
+          "GCP median (m) | check points (m) | fit | GPS kept | s | error |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for v in a.variants:
         for s in a.seeds:
             r = run_one(a.preset, s, v, a.code.resolve(), work)
             rows.append({"variant": v, "seed": s, **r})
-            print(f"| {v} | {s} | {r.get('registered', '-')} | {r.get('models', '-')} | {fmt(r.get('pos_m'))} | "
-                  f"{fmt(r.get('rot_deg'))} | {fmt(r.get('gcp_m'))} | {fmt(r.get('check_m'))} | {r['seconds']:.0f} | "
-                  f"{(r.get('error') or '')[:90]} |", flush=True)
+            print(f"| {v} | {s} | {r.get('registered', '-')} | {fmt(r.get('pos_m'))} | "
+                  f"{fmt(r.get('rot_deg'))} | {fmt(r.get('tilt_deg'))} | {fmt(r.get('heading_deg'), 2)} | "
+                  f"{fmt(r.get('gcp_m'))} | {fmt(r.get('check_m'))} | {r.get('fit') or '-'} | {fmt(r.get('share'), 2)} | "
+                  f"{r['seconds']:.0f} | {(r.get('error') or '')[:120]} |", flush=True)
     print("\nmedian and worst over seeds:")
-    print("| variant | position median / worst (m) | rotation median / worst (deg) | GCP median / worst (m) |")
-    print("|---|---|---|---|")
+    print("| variant | position median / worst (m) | rotation median / worst (deg) | tilt median / worst (deg) | "
+          "GCP median / worst (m) |")
+    print("|---|---|---|---|---|")
     for v in a.variants:
         rs = [r for r in rows if r["variant"] == v]
 
@@ -104,7 +117,7 @@ def main(argv=None) -> int:
             if any(val is None for val in x):
                 return f"failed in {sum(val is None for val in x)} of {len(x)}"
             return f"{np.median(x):.3f} / {max(x):.3f}"
-        print(f"| {v} | {mw('pos_m')} | {mw('rot_deg')} | {mw('gcp_m')} |")
+        print(f"| {v} | {mw('pos_m')} | {mw('rot_deg')} | {mw('tilt_deg')} | {mw('gcp_m')} |")
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1, default=str))
     return 0

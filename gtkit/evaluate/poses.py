@@ -37,3 +37,20 @@ def medians(errors: dict[str, dict]) -> dict[str, float | None]:
     re = [e["rot_err_deg"] for e in errors.values() if not e.get("missing")]
     return {"median_pos_err_m": float(np.median(pe)) if pe else None,
             "median_rot_err_deg": float(np.median(re)) if re else None}
+
+
+def block_frame_errors(estimated: dict[str, Pose], truth: dict[str, Pose]) -> dict[str, float] | None:
+    """How a georegistered block's frame differs from the true world, split the way georegistration
+    can fail: tilt (the block's up vs the true up), heading, and the camera centres' horizontal and
+    vertical offsets (medians of |.|). None when no photo is in both."""
+    from scipy.spatial.transform import Rotation
+
+    names = [n for n in estimated if n in truth]
+    if not names:
+        return None
+    Q = Rotation.from_matrix([estimated[n].R.T @ truth[n].R for n in names]).mean().as_matrix()
+    d = np.array([estimated[n].center - truth[n].center for n in names])
+    return {"tilt_deg": float(np.degrees(np.arccos(np.clip((Q @ np.array([0.0, 0.0, 1.0]))[2], -1, 1)))),
+            "heading_deg": float(np.degrees(np.arctan2(Q[1, 0], Q[0, 0]))),
+            "horizontal_m": float(np.median(np.linalg.norm(d[:, :2], axis=1))),
+            "vertical_m": float(np.median(np.abs(d[:, 2])))}
