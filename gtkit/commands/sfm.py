@@ -39,9 +39,22 @@ def _print_reference(r: dict) -> None:
     for m in r.get("models", []) if r.get("n_models", 1) > 1 else []:
         print(f"  model {m['model']}: {m['n_registered']} photos, {m['n_points3D']} points, "
               + ("kept" if m.get("kept") else m.get("reason", "")))
-    print(f"georegistration ({geo.get('used')}): {geo.get('n_inliers')} inliers, "
-          f"RMSE {geo.get('rmse_inliers_m', float('nan')):.3f} m; GCP median error "
-          f"{geo.get('gcp_median_err_m')} m; check points {geo.get('checkpoint_median_err_m')} m")
+    fit, q = geo.get("fit") or {}, geo.get("gps_quality") or {}
+    line = (f"georegistration: fitted to {geo.get('fitted_to') or geo.get('used')}, "
+            f"RMSE {geo.get('rmse_inliers_m', float('nan')):.3f} m")
+    if fit.get("mode") == "gravity-held":
+        line += f"; tilt held by gravity ({fit.get('tilt_from')})"
+    if geo.get("gcp_median_err_m") is not None:
+        line += f"; GCP median error {geo['gcp_median_err_m']:.3f} m"
+    if geo.get("checkpoint_median_err_m") is not None:
+        line += f"; check points {geo['checkpoint_median_err_m']:.3f} m"
+    print(line)
+    if q and not geo.get("n_gcp_in_fit"):
+        print(f"  GPS: {q.get('n_inliers')}/{q.get('n_positions')} positions kept, residual median "
+              f"{q.get('horizontal_residual_median_m') or 0:.2f} m horizontal / {q.get('vertical_residual_median_m') or 0:.2f} m vertical"
+              + (f", altitude drift {q['altitude_drift_m']:+.1f} m" if q.get("altitude_drift_m") else "")
+              + f"; absolute accuracy ~{q.get('absolute_accuracy_h_m') or 0:.1f} m horizontal, "
+              f"~{q.get('absolute_accuracy_v_m') or 0:.1f} m vertical")
     for name, g in (geo.get("gcp_residuals") or {}).items():
         kind = "check point" if g.get("check") else ("GCP (outlier)" if g.get("outlier") else "GCP")
         print(f"  {kind} {name}: " + (f"{g['err_m']:.3f} m (dx {g['dx_m']:+.3f} dy {g['dy_m']:+.3f} dz {g['dz_m']:+.3f})"

@@ -113,6 +113,17 @@ def gps_positions_and_accuracy(project: Project, names: list[str]) -> tuple[dict
     return out, acc
 
 
+def photo_metas(project: Project, names: list[str]) -> dict:
+    """{photo: PhotoMeta} (gimbal attitude, capture time, relative altitude) of the readable photos."""
+    out = {}
+    for n in names:
+        try:
+            out[n] = read_photo_meta(project.paths.images / n, require=())
+        except GtkitError:
+            continue
+    return out
+
+
 def pairing_positions(project: Project, names: list[str], centres: dict[str, np.ndarray],
                       max_range_factor: float = 3.0) -> dict[str, np.ndarray]:
     """Where each photo looks: the camera centre moved along the optical axis (DJI gimbal angles)
@@ -488,11 +499,12 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         if gcps and kind == "reference":
             summary["gcp_clicks_outside_block"] = check_gcp_clicks(gcps, names)
         geo_models = []
+        metas = photo_metas(project, names)
         for k, r in enumerate(models):
             if k in duplicate:
                 continue
             try:
-                g = georegister(r, positions, gcps, settings.georegister, accuracy)
+                g = georegister(r, positions, gcps, settings.georegister, accuracy, metas)
                 models_info[k]["georegistration"] = {kk: g[kk] for kk in ("n_inliers", "rmse_inliers_m", "gcp_median_err_m")}
                 geo_models.append((k, g))
             except RegistrationError as e:
@@ -510,7 +522,11 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     if len(kept) > 1:  # each model was georegistered on its own; the figures above are model 0's
         summary["georegistration"]["merged_models"] = kept
     geo = summary.get("georegistration", {})
-    if kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3:
+    if (kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3
+            and geo.get("fit", {}).get("mode") == "gravity-held"):
+        summary["held_by_positions"] = {"applied": False, "reason": "positions too coarse to hold the block's shape "
+                                        "(its tilt is held by gravity)"}
+    elif kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3:
         summary["held_by_positions"] = hold_by_positions(rec, positions, set(geo.get("outliers", [])), accuracy,
                                                          num_threads=settings.num_threads)
     for k, info in enumerate(models_info):

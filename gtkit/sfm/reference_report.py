@@ -5,7 +5,7 @@ from __future__ import annotations
 from ..io.atomic import write_json, write_text
 from ..project import Paths
 
-GEO_KEYS = ("used", "n_inliers", "n_gps", "n_gcp_in_fit", "n_checkpoints", "gcp_threshold_m",
+GEO_KEYS = ("used", "fitted_to", "fit", "gps_quality", "plausibility", "n_inliers", "n_gps", "n_gcp_in_fit", "n_checkpoints", "gcp_threshold_m",
             "gcp_median_err_m", "gcp_rmse_m", "checkpoint_median_err_m", "checkpoint_rmse_m", "outliers", "error")
 
 
@@ -30,6 +30,33 @@ def _f(v, nd=3):
     return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
 
 
+def _fit_lines(fit: dict, q: dict | None, plaus: dict | None) -> list[str]:
+    """The georegistration's method, the GPS quality and what the block can claim, in words."""
+    out = []
+    if fit.get("mode") == "gravity-held":
+        out.append(f"- tilt held by gravity ({fit.get('tilt_from')}, spread {_f(fit['up']['spread_deg'], 2)} deg over "
+                   f"{fit['up']['n_photos']} photos); heading, scale and position from the GPS: {fit.get('why')}")
+    elif fit.get("mode") == "free":
+        out.append(f"- free Sim(3): {fit.get('why')}")
+    if q:
+        drift = q.get("altitude_drift_m")
+        out.append(f"- GPS quality: {q.get('n_inliers')} of {q.get('n_positions')} positions kept "
+                   f"({_f(100 * (q.get('share_kept') or 0), 0)} %); residual median "
+                   f"{_f(q.get('horizontal_residual_median_m'), 2)} m horizontal, {_f(q.get('vertical_residual_median_m'), 2)} m "
+                   "vertical" + (f"; the altitudes drift {drift:+.1f} m over the flight (taken out)" if drift else ""))
+        out.append(f"- absolute accuracy the site can claim (1 sigma, from the GPS): ~{_f(q.get('absolute_accuracy_h_m'), 1)} m "
+                   f"horizontal, ~{_f(q.get('absolute_accuracy_v_m'), 1)} m vertical"
+                   + (f"; heading to ~{_f(q.get('heading_precision_deg'), 2)} deg" if q.get("heading_precision_deg") else "")
+                   + " (relative geometry is the SfM's: centimetres)")
+    if plaus:
+        out.append(f"- plausibility: cameras above what they see in {_f(100 * (plaus.get('share_above_their_points') or 0), 0)} % "
+                   f"of the photos, {_f(plaus.get('median_height_above_points_m'), 1)} m above it; median viewing direction "
+                   f"z {_f(plaus.get('median_view_z'), 2)}"
+                   + (f"; rotations {_f(plaus['median_attitude_disagreement_deg'], 1)} deg from the gimbal attitude"
+                      if plaus.get("median_attitude_disagreement_deg") is not None else ""))
+    return out
+
+
 def write_reference_report(paths: Paths, summary: dict) -> dict:
     rep = reference_report(summary)
     write_json(paths.reports / "reference.json", rep)
@@ -43,10 +70,12 @@ def write_reference_report(paths: Paths, summary: dict) -> dict:
     if "error" in g:
         lines.append(f"**failed**: {g['error']}")
     else:
-        lines += [f"- fitted to: {g.get('used')} ({g.get('n_gps')} GPS positions, {g.get('n_gcp_in_fit')} GCPs, "
-                  f"{g.get('n_checkpoints')} check points); {g.get('n_inliers')} inliers, RMSE {_f(g.get('rmse_m'))} m",
-                  f"- GCP residual median {_f(g.get('gcp_median_err_m'))} m, RMSE {_f(g.get('gcp_rmse_m'))} m; "
-                  f"check points median {_f(g.get('checkpoint_median_err_m'))} m"]
+        lines += [f"- fitted to: {g.get('fitted_to') or g.get('used')} ({g.get('n_gps')} GPS positions and "
+                  f"{g.get('n_gcp_in_fit')} GCPs given, {g.get('n_checkpoints')} check points); RMSE {_f(g.get('rmse_m'))} m"]
+        lines += _fit_lines(g.get("fit") or {}, g.get("gps_quality"), g.get("plausibility"))
+        if g.get("n_gcp_in_fit") or g.get("n_checkpoints"):
+            lines.append(f"- GCP residual median {_f(g.get('gcp_median_err_m'))} m, RMSE {_f(g.get('gcp_rmse_m'))} m; "
+                         f"check points median {_f(g.get('checkpoint_median_err_m'))} m")
     h = rep["held_by_positions"]
     if h and h.get("applied"):
         lines.append(f"- held by its positions in a pose-prior BA: {h['n_priors']} photos, sigma {_f(h['sigma_h_m'])} m "
