@@ -1,0 +1,93 @@
+"""``gtkit run DIR``: every stage that can run on what the project holds, then a summary
+(see :mod:`gtkit.run_site`). A second run of a finished project only re-reads the outputs."""
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub):
+    from ..run_site import STAGES
+    from .render_db import _executor_args
+
+    p = sub.add_parser(
+        "run", help="run every stage that can run on a project (SfM, model, pseudo-GT, exports, overlays, "
+        "localization, tracking, reports) and print a summary",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Run, in order, the stages that can run on what the project holds; a stage whose input is\n"
+                    "absent is skipped with the reason, a failing stage stops the run (exit 2) naming it.\n"
+                    "Finished stages are up to date and only re-read. Stages: " + ", ".join(STAGES) + ".\n"
+                    "Summary: printed and written to reports/run.json.")
+    p.add_argument("project")
+    p.add_argument("--from", dest="start", default=None, metavar="STAGE", choices=STAGES,
+                   help="start at this stage (the earlier ones are not run; their outputs are read)")
+    p.add_argument("--until", default=None, metavar="STAGE", choices=STAGES, help="stop after this stage")
+    p.add_argument("--skip", default="", metavar="STAGE,...", help="comma-separated stages not to run")
+    _executor_args(p)
+    p.set_defaults(func=run)
+
+
+def _f(v, fmt="{:.3f}", unit=""):
+    return "-" if v is None else fmt.format(v) + unit
+
+
+def print_summary(s: dict) -> None:
+    ref, pg, loc, tr = (s.get(k) or {} for k in ("reference", "pseudo_gt", "localization", "tracking"))
+    print(f"\n== gtkit run on {s['project']}")
+    if ref:
+        geo = f"georegistered by {ref.get('georegistered_with')}: {ref.get('n_inliers')} inliers, RMSE {_f(ref.get('rmse_m'), unit=' m')}"
+        if ref.get("gcp_median_err_m") is not None:
+            geo += f", GCP median {_f(ref['gcp_median_err_m'], unit=' m')}"
+        if ref.get("checkpoint_median_err_m") is not None:
+            geo += f", check points median {_f(ref['checkpoint_median_err_m'], unit=' m')}"
+        if ref.get("gps_sigma_h_m") is not None:
+            geo += (f"; GPS sigma {_f(ref['gps_sigma_h_m'])} m horizontal / {_f(ref.get('gps_sigma_v_m'))} m vertical, "
+                    f"median residual {_f(ref.get('gps_residual_median_m'))} m")
+        print(f"reference     {ref.get('n_registered')}/{ref.get('n_images')} photos registered, "
+              f"reprojection {_f(ref.get('mean_reproj_px'), '{:.2f}')} px; {geo}")
+    m = s.get("model") or {}
+    print(f"model         {m.get('source')}" + (f" ({m['path']})" if m.get("path") else ""))
+    for seq, b in (s.get("query_blocks") or {}).items():
+        print(f"query block   {seq}: " + (f"ERROR {b['error']}" if "error" in b else
+                                          f"{b.get('n_registered')}/{b.get('n_images')} photos registered"))
+    if pg:
+        print(f"pseudo-GT     {pg.get('n_registered')}/{pg.get('n_images')} query photos registered, median sigma "
+              f"{_f(pg.get('median_sigma_pos_m'))} m / {_f(pg.get('median_sigma_rot_deg'))} deg, reprojection "
+              f"{_f(pg.get('median_reproj_px'), '{:.2f}')} px")
+        for seq, how in (pg.get("registered_by") or {}).items():
+            print(f"              {seq}: registered by {how}")
+        for seq, e in (pg.get("errors") or {}).items():
+            print(f"              {seq}: not registered: {e}")
+    ov = s.get("overlays") or {}
+    if ov:
+        print(f"overlays      {ov.get('n_images')} photos, median misalignment "
+              f"{_f(ov.get('median_misalignment_px'), '{:.2f}')} px")
+    if loc:
+        print(f"localization  {loc.get('n_localized')}/{loc.get('n_queries')} query photos localized "
+              f"against {loc.get('database_views')} database views")
+    if tr:
+        print(f"tracking      {tr.get('n_located')}/{tr.get('n_detections')} detections located, median sigma "
+              f"{_f(tr.get('median_sigma_h_m'), '{:.2f}')} m horizontal")
+    if s.get("exports"):
+        print("exports       " + ", ".join(s["exports"]))
+    print("stages        " + ", ".join(f"{k} {v['status']}" + (f" ({v['seconds']} s)" if v["status"] in ("ran", "up to date") else "")
+                                       for k, v in s["stages"].items() if v["status"] != "not selected"))
+    print(f"reports       {s['project']}/reports (run.json, reference.md, gt_report.md)")
+
+
+def run(args):
+    from ..run_site import RunOptions, run as run_site
+    from .render_db import executor_settings
+
+    def starting(name):
+        print(f"[{name}] ...", flush=True)
+
+    def progress(r):
+        if r.status == "skipped":
+            print(f"[{r.name}] skipped: {r.why}", flush=True)
+        elif r.status != "failed":
+            print(f"[{r.name}] {r.status} in {r.seconds} s", flush=True)
+
+    opts = RunOptions(args.start, args.until, tuple(s for s in args.skip.split(",") if s),
+                      executor_settings(args))
+    print_summary(run_site(args.project, opts, progress, starting))
+    return 0
