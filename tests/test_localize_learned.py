@@ -196,7 +196,7 @@ def test_localize_small_sample_queries_with_xfeat(small_sample, tmp_path):
     shutil.copytree(small_sample, root, ignore=shutil.ignore_patterns("work", "exports", "reports"))
     database.run(root, database.RenderDbSettings(heights=(150.0,), intervals=(75.0,), paper_pitches=(0.0, 45.0)),
                  ExecutorSettings("serial"))
-    s = localize.settings_for("xfeat", localize.LocalizeSettings(query_glob="queries/seq1/000[123]_W.jpg"))
+    s = localize.settings_for("xfeat", localize.LocalizeSettings(query_subset="queries/seq1/000[123]_W.jpg"))
     out = localize.run(root, s, ablation="xfeat", executor=ExecutorSettings("serial"))
     truth = read_poses(root / "truth" / "poses.txt")
     est = read_poses(out / "poses.txt")

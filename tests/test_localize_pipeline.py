@@ -207,7 +207,7 @@ def test_a_pose_less_certain_than_the_limit_is_never_reported(site):
     name = min(ok, key=ok.get)
     assert ok[name] < 2.5            # the default limit passes what the default run reported
     limit = 0.5 * ok[name]           # a limit below this query's own sigma: its pose must not be reported
-    s = localize.LocalizeSettings(query_glob=name, max_sigma_pos_m=limit,
+    s = localize.LocalizeSettings(query_subset=name, max_sigma_pos_m=limit,
                                   fallback_rounds=1)
     out = localize.run(site, s, ablation="sigma-limit", executor=ExecutorSettings("serial"))
     q = json.loads((out / "status.json").read_text())["queries"][0]
@@ -229,9 +229,9 @@ def test_db_views_without_depth_fail_the_query_and_the_run_goes_on(site):
             shutil.copy(f, backup / v.replace("/", "_"))
             d = database.read_depth(f)
             database.write_depth(f, np.full_like(d, np.nan), 1.0)
-        s = localize.LocalizeSettings(query_glob="queries/seq1/000[12]_W.jpg", fallback_rounds=0)
+        s = localize.LocalizeSettings(query_subset="queries/seq1/000[12]_W.jpg", fallback_rounds=0)
         out = localize.run(site, s, ablation="broken-depth", executor=ExecutorSettings("serial"))
-        s1 = localize.LocalizeSettings(query_glob="queries/seq1/0001_W.jpg")  # default: one fallback round
+        s1 = localize.LocalizeSettings(query_subset="queries/seq1/0001_W.jpg")  # default: one fallback round
         out1 = localize.run(site, s1, ablation="broken-depth-fallback", executor=ExecutorSettings("serial"))
     finally:
         for v in broken:
@@ -272,7 +272,7 @@ def test_dask_local_cluster_renders_and_localizes_like_local_processes(site):
     assert [r[0][0] for r in res] == [v["name"] for v in views]
     for v, d in zip(views, before):
         assert np.array_equal(database.read_depth(out / "depth" / f"{v['name']}.npz"), d, equal_nan=True)
-    s = localize.LocalizeSettings(query_glob="queries/seq1/000[12]_W.jpg")
+    s = localize.LocalizeSettings(query_subset="queries/seq1/000[12]_W.jpg")
     o = localize.run(site, s, ablation="dask-check", executor=ExecutorSettings("dask", 2))
     a = read_poses(o / "poses.txt")
     b = read_poses(site / "work" / "localize" / "poses.txt")

@@ -12,7 +12,9 @@ def register(sub):
                    help="a named variant; writes work/localize-<name>/ (default: work/localize/)")
     p.add_argument("--top-k", type=int, default=None, help="retrieved views per query (default 3)")
     p.add_argument("--gps-radius", type=float, default=None, help="keep views within this radius of GPS, m")
-    p.add_argument("--queries", default=None, help="glob under images/ (default queries/*/*_W.jpg)")
+    p.add_argument("--queries", default=None,
+                   help="only the query photos matching this glob under images/, e.g. 'queries/seq1/*' (which photos "
+                        "are queries: [sfm] query_pattern, default '*_W.*')")
     _executor_args(p)
     p.add_argument("--force", action="store_true", help="recompute even when up to date")
     p.set_defaults(func=run)
@@ -27,6 +29,6 @@ def run(args):
     # the ablation's settings < project.toml [localize] < the flags given (gtkit.settings.resolve)
     project = Project.load(args.project)
     s = resolve(localize.settings_for(args.ablation), "localize", project,
-                {"top_k": args.top_k, "gps_radius_m": args.gps_radius, "query_glob": args.queries})
+                {"top_k": args.top_k, "gps_radius_m": args.gps_radius, "query_subset": args.queries})
     out = localize.run(project, s, ablation=args.ablation, executor=executor_settings(args), force=args.force)
     print(f"poses: {out / 'poses.txt'}  status: {out / 'status.json'}")

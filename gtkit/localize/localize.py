@@ -15,6 +15,15 @@ Two additions to the paper's method (both recorded per query in ``status.json``;
   repetitive fields and swing with the codebook (R@1 57 % on the small sample, seed 0; 100 % with the
   predicted overlap). ``"footprint"`` is the earlier rule (views whose look-at point lies within
   ``gps_footprint_radius_m`` of the query's first, then descriptor score), kept as an ablation.
+  A photo with GPS but no gimbal angles (consumer cameras) gets the views near its GPS position
+  first (``no_attitude_radius_m``), by descriptor score.
+- Photos without gimbal angles are localized too: no rotation prior filter, plain P3P RANSAC (no
+  gravity check); ``status.json`` lists them (``no_attitude``) and says so per query.
+
+Which photos are queries: ``[sfm] query_pattern`` (:func:`gtkit.queries.query_photos`); their
+intrinsics: :func:`gtkit.queries.query_cameras` (cameras.txt, else the sequence's SfM, else the
+reference block's calibration of the same camera, else the EXIF focal), each query's source in
+``status.json`` (``intrinsics``; ``intrinsics_sources`` counts them).
 - Fallback (``fallback_rounds``): when PnP fails on the top-k views, the next top-k of the ranking
   are tried (``fallback_round``, ``fallback_retrieved``, ``failed_rounds``). Retrieval metrics
   score the first top-k only.
@@ -48,7 +57,7 @@ from ..camera import Camera
 from ..conventions import dji_to_rotation, gravity_in_camera
 from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json, write_text
-from ..io.poses import read_intrinsics, write_covariances, write_poses
+from ..io.poses import write_covariances, write_poses
 from ..pose import Pose
 from ..project import (Project, file_fingerprint, mark_stage_done, relative_paths, settings_dict, settings_key,
                        stage_done, start_stage_clock)
@@ -111,6 +120,11 @@ class LocalizeSettings:
     # 75 m = the largest grid interval alpha_t: every ground point lies within alpha_t/sqrt(2) = 53 m
     # of a grid position of every level, leaving ~20 m for GPS/altitude error (position_prior "footprint").
     gps_footprint_radius_m: float = 75.0
+    # A photo with GPS but no gimbal angles (consumer cameras; the position prior "overlap" needs the
+    # attitude): the views whose camera centre lies within 0.75 x their level's grid interval (every
+    # point is within interval / sqrt(2) of a grid position) + this margin for the GPS error of the
+    # query's GPS position (horizontally) come first, by descriptor score; None = off.
+    no_attitude_radius_m: float | None = 20.0
     top_k: int = 3                     # retrieved views per query (paper)
     # When PnP fails on the top-k views, try the next top-k of the ranking, up to this many more times
     # (0 = the paper). Costs time only on queries that would otherwise fail (at most
@@ -129,7 +143,9 @@ class LocalizeSettings:
     db_heights: tuple[float, ...] | None = None        # use only these database levels
     db_highest_only: bool = False                      # use only the highest database level
     db_paper_pitches: tuple[float, ...] | None = None  # use only these paper pitches (0 = nadir)
-    query_glob: str = "queries/*/*_W.jpg"              # relative to images/
+    # Which photos are queries is [sfm] query_pattern (gtkit.queries.query_photos); this only narrows
+    # them to the names matching a glob (relative to images/, e.g. "queries/seq1/*"); None = all.
+    query_subset: str | None = None
 
 
 # Ablations (the paper's tables): each names its own output folder work/localize-<name>/.
@@ -321,8 +337,19 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
 # --- per query (runs in workers) ------------------------------------------------------------
 
 def query_names(project: Project, s: LocalizeSettings) -> list[str]:
-    imgs = project.paths.images
-    return sorted(p.relative_to(imgs).as_posix() for p in imgs.glob(s.query_glob) if p.is_file())
+    """The query photos ([sfm] query_pattern, :func:`gtkit.queries.query_photos`), narrowed to
+    ``s.query_subset`` when given."""
+    from fnmatch import fnmatchcase
+
+    from ..queries import query_photos
+
+    names = query_photos(project)
+    return [n for n in names if fnmatchcase(n, s.query_subset)] if s.query_subset else names
+
+
+def _camera(line: str) -> Camera:
+    f = line.split()
+    return Camera(f[0], int(f[1]), int(f[2]), tuple(float(x) for x in f[3:]))
 
 
 def _context(ctx: dict):
@@ -343,14 +370,20 @@ def _context(ctx: dict):
         G = G if np.array_equal(rows, np.arange(len(G))) else np.ascontiguousarray(G[rows])   # a subset: a copy
         if "h5" in _W:
             _W["h5"].close()
+        cameras = ctx.get("cameras")            # resolved once by run(); else here
+        if cameras is None:
+            from ..queries import query_cameras
+
+            cameras = {n: [c.camera.to_line(), c.source] for n, c in query_cameras(proj, query_names(proj, s)).items()}
         _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=G,
                   ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
                   centers=np.array([v.pose.center for v in db.views]).reshape(-1, 3),
-                  look_at=_view_look_at(db), ground=_ground_level(db),
+                  look_at=_view_look_at(db), ground=_ground_level(db), level_interval=_level_intervals(db),
                   view_R=np.array([np.asarray(v.pose.R) for v in db.views]).reshape(-1, 3, 3),
                   view_t=np.array([np.asarray(v.pose.t) for v in db.views]).reshape(-1, 3),
                   h5=h5py.File(ctx["features"], "r"), extractor=_extractor(s.features, db=False),
-                  matcher=_matcher(s), cams=read_intrinsics(proj.paths.cameras))
+                  matcher=_matcher(s), cams={n: _camera(line) for n, (line, _src) in cameras.items()},
+                  cam_sources={n: src for n, (_line, src) in cameras.items()})
     return _W
 
 
@@ -363,6 +396,19 @@ def _view_look_at(db: Database) -> np.ndarray:
     centers = np.array([v.pose.center for v in db.views])
     axes = np.array([np.asarray(v.pose.R)[2] for v in db.views])  # camera +z in the world
     return look_at_points(centers, axes, _ground_level(db))
+
+
+def _level_intervals(db: Database) -> np.ndarray:
+    """(N,) the grid interval of each view's level: the smallest spacing of its level's positions."""
+    out = np.zeros(len(db.views))
+    hs = np.array([v.height for v in db.views])
+    for h in np.unique(hs):
+        idx = np.flatnonzero(hs == h)
+        xy = np.unique(np.round([db.views[i].pose.center[:2] for i in idx], 3), axis=0)
+        gaps = [np.diff(np.unique(xy[:, k])) for k in (0, 1)]
+        gaps = np.concatenate([g[g > 1e-3] for g in gaps])
+        out[idx] = gaps.min() if len(gaps) else 0.0
+    return out
 
 
 def _ground_level(db: Database) -> float:
@@ -420,16 +466,17 @@ def _localize_query(W: dict, name: str) -> dict:
     sec = {k: 0.0 for k in STEPS}
     rec: dict = {"name": name, "ok": False, "reason": None, "seconds": sec}
     path = proj.paths.images / name
-    if name not in W["cams"]:
-        raise GtkitError(f"no intrinsics for {name}", proj.paths.cameras)
     cam: Camera = W["cams"][name]
+    rec["intrinsics"] = W["cam_sources"][name]
     meta = read_photo_meta(path)
     prior_R = None
+    rec["attitude"] = bool(meta.has_gimbal)
     if meta.has_gimbal:
         rec["prior_ypr"] = [meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll]
         prior_R = dji_to_rotation(meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll)
     elif s.rotation_prior or s.pnp.gravity_deg is not None:
-        rec["note"] = "no DJI gimbal angles: rotation prior and gravity check skipped"
+        rec["note"] = ("no DJI gimbal angles: retrieval without the rotation prior, plain P3P RANSAC "
+                       "(no gravity check)")
     # features
     t = time.perf_counter()
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -478,6 +525,13 @@ def _localize_query(W: dict, name: str) -> dict:
             key = pred + s.prior_vlad_weight * score
             rec["position_prior"] = {"mode": "overlap", "n_overlapping": int((near & keep).sum()),
                                      "best_predicted": round(float(pred.max()), 3)}
+    elif (s.position_prior is not None and s.no_attitude_radius_m is not None and meta.has_gps
+          and prior_R is None and len(db.views)):
+        xy = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude or 0.0))[:2]
+        dist = np.linalg.norm(W["centers"][:, :2] - xy, axis=1)
+        near = dist <= 0.75 * W["level_interval"] + s.no_attitude_radius_m
+        rec["position_prior"] = {"mode": "near (no attitude)", "n_near": int((near & keep).sum()),
+                                 "margin_m": s.no_attitude_radius_m}
     ranked = rank_candidates(key, keep, near, s.top_k * (1 + max(0, s.fallback_rounds)))
     sec["retrieval"] = time.perf_counter() - t
     rounds = [ranked[k:k + s.top_k] for k in range(0, len(ranked), s.top_k)]
@@ -573,6 +627,13 @@ def _match_and_solve(W: dict, rec: dict, fq, cam: Camera, prior_R, order, sec: d
 
 # --- the stage ----------------------------------------------------------------------------------
 
+def _count(sources) -> dict[str, int]:
+    """How many photos took their intrinsics from each kind of source."""
+    from collections import Counter
+
+    return dict(Counter(s.split(" (")[0] for s in sources))
+
+
 def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSettings(), ablation: str = "default",
         executor: ExecutorSettings = ExecutorSettings(), force: bool = False) -> Path:
     """Localize every query; returns the output folder. Skips when settings and inputs match."""
@@ -581,27 +642,34 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
     dbdir = project.paths.stage("render_db")
     names = query_names(project, settings)
     if not names:
-        raise GtkitError(f"no query images match {settings.query_glob!r}", project.paths.images)
+        from ..queries import query_pattern
+
+        raise GtkitError(f"no query photos: nothing in images/queries/<seq>/ matches [sfm] query_pattern "
+                         f"{query_pattern(project)!r}" + (f" and the subset {settings.query_subset!r}"
+                                                          if settings.query_subset else ""), project.paths.query_images)
+    from ..queries import query_cameras
     from .features import CODE_VERSION
 
+    qcams = {n: [qc.camera.to_line(), qc.source] for n, qc in query_cameras(project, names).items()}
     inputs = {"render_db": file_fingerprint(dbdir / "stage.json"), "queries": settings_key(names),
-              "cameras": file_fingerprint(project.paths.cameras),
-              "feature_code": CODE_VERSION.get(settings.features.extractor, 1)}
+              "cameras": settings_key(qcams), "feature_code": CODE_VERSION.get(settings.features.extractor, 1)}
     if not force and stage_done(out, settings, inputs):
         log.info("localize: up to date (%s)", out)
         return out
     start_stage_clock(out)
-    if not project.paths.cameras.is_file():
-        raise GtkitError("intrinsics of the query photos missing (name MODEL W H params... per line)",
-                         project.paths.cameras)
     t_all = time.perf_counter()
     db_full = load_database(project)
     db = select_views(db_full, settings)
     if not db.views:
-        raise GtkitError("the database subset chosen by the settings is empty", dbdir)
+        have = sorted({(v.height, v.paper_pitch) for v in db_full.views})
+        raise GtkitError("the database subset chosen by the settings is empty: the run needs heights "
+                         f"{settings.db_heights or 'any'} and pitches {settings.db_paper_pitches or 'any'}, the "
+                         f"database holds (height, pitch) {have}; render it with those levels "
+                         "(gtkit render-db --heights ... --pitches ...)", dbdir)
     offline = prepare_database(project, db_full, settings, executor)
     ctx = {"root": str(project.paths.root), "settings": settings_dict(settings),
-           "features": offline["features"], "global": offline["global"], "global_matrix": offline["global_matrix"]}
+           "features": offline["features"], "global": offline["global"], "global_matrix": offline["global_matrix"],
+           "cameras": qcams}
     t0 = time.perf_counter()
     ex = make_executor(executor)
     try:
@@ -623,6 +691,8 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
     write_json(out / "status.json", relative_paths({  # portable: paths relative to the project root
         "ablation": ablation, "settings": settings_dict(settings), "n_queries": len(names), "n_localized": n_ok,
         "database_views": len(db.views), "offline": offline, "wall_s": wall, "total_s": time.perf_counter() - t_all,
+        "intrinsics_sources": _count(src for _line, src in qcams.values()),
+        "no_attitude": sorted(r["name"] for r in results if r.get("attitude") is False),
         "executor": asdict(executor), "queries": results}, project.paths.root))
     mark_stage_done(out, settings, inputs, outputs=[Path(offline["cache"])], n_queries=len(names), n_localized=n_ok,
                     wall_s=round(wall, 2), db_features_s=round(offline["db_features_s"], 2),
