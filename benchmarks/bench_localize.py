@@ -1,7 +1,7 @@
 """Localization benchmark: database rendering views/s, seconds per query by step, memory peak,
 recall. Prints a table; run by hand (not a test):
 
-    python benchmarks/bench_localize.py DIR [--render-views 48] [--queries 'queries/*/*_W.jpg']
+    python benchmarks/bench_localize.py DIR [--render-views 48] [--queries 'queries/seq1/*']
 
 DIR must hold a reference model and (for recall) truth/. The database is rendered first when
 work/render_db/ is missing (paper settings). Everything runs in this process (serial executor)
@@ -31,7 +31,7 @@ def peak_mib() -> float:
 
 def bench_render(project: Project, n: int) -> dict:
     s = database.RenderDbSettings()
-    views, _info = database.plan_views(project, s)
+    views, _info, s = database.plan_views(project, s)
     step = max(1, len(views) // n)
     views = views[::step][:n]
     t0 = time.perf_counter()
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("project")
     p.add_argument("--render-views", type=int, default=48)
-    p.add_argument("--queries", default=None, help="glob under images/ (default: every wide photo)")
+    p.add_argument("--queries", default=None, help="only the query photos matching this glob under images/ (default: every query photo, [sfm] query_pattern)")
     a = p.parse_args(argv)
     proj = Project.load(a.project)
     rows = []
@@ -64,7 +64,7 @@ def main(argv=None) -> int:
     rows.append(("render-db stage: views kept / planned", f"{rec['summary']['n_kept']} / {rec['summary']['n_views']}"))
     s = localize.LocalizeSettings()
     if a.queries:
-        s = dataclasses.replace(s, query_glob=a.queries)
+        s = dataclasses.replace(s, query_subset=a.queries)
     t0 = time.perf_counter()
     out = localize.run(proj, s, ablation="bench", executor=ExecutorSettings("serial"), force=True)
     wall = time.perf_counter() - t0

@@ -39,7 +39,7 @@ def main() -> None:
     project = Project.load(args.project)
     s = D.RenderDbSettings() if not args.model else dataclasses.replace(D.RenderDbSettings(), model=args.model)
     t = time.perf_counter()
-    views, info = D.plan_views(project, s)
+    views, info, s = D.plan_views(project, s)
     print(f"planned {len(views)} views in {time.perf_counter() - t:.1f} s")
     t = time.perf_counter()
     r = D._renderer_for(str(project.paths.root), s, info["ground_level_z"])

@@ -5,8 +5,9 @@
     python -m pipelines.localize DIR --ablations no-gravity top1
 
 An existing database (work/render_db/) is used as it is; without one it is rendered with the
-default settings (the paper's grid plus a 70-degree off-nadir level; ablation 'render-paper' =
-the paper's pitches only). Each ablation writes work/localize-<name>/ and reports/localization-<name>.json; finished runs
+project's [render_db] settings, by default a grid that follows the queries' heights, gimbal pitches
+and field of view (gtkit.localize.database.resolve_grid; without them the paper's grid plus a
+70-degree off-nadir level; ablation 'render-paper' = the paper's pitches only). Each ablation writes work/localize-<name>/ and reports/localization-<name>.json; finished runs
 are reused when their settings match, so re-running only computes what changed.
 """
 from __future__ import annotations
@@ -25,10 +26,13 @@ COLUMNS = ("recall_1m1deg", "recall_3m3deg", "recall_5m5deg", "retrieval_R1", "r
 def run(root, ablations=("default",), db_settings: database.RenderDbSettings | None = None,
         executor: ExecutorSettings = ExecutorSettings(), base: localize.LocalizeSettings = localize.LocalizeSettings()
         ) -> dict[str, dict]:
-    from gtkit.project import Paths
+    from gtkit.project import Paths, Project
+    from gtkit.settings import resolve
 
     if db_settings is not None or not (Paths(root).stage(database.STAGE) / "stage.json").is_file():
-        database.run(root, db_settings or database.RenderDbSettings(), executor)  # 1. offline database
+        # 1. offline database: given settings, else project.toml [render_db] < defaults (a grid that
+        # follows the queries, database.resolve_grid)
+        database.run(root, db_settings or resolve(database.RenderDbSettings(), "render_db", Project.load(root)), executor)
     reports = {}
     for name in ablations:
         localize.run(root, localize.settings_for(name, base), ablation=name, executor=executor)  # 2. online

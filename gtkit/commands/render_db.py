@@ -7,20 +7,28 @@ def _floats(s: str) -> tuple[float, ...]:
 
 
 def register(sub):
+    from ..localize.database import PAPER_GRID as G
     from ..localize.database import RenderDbSettings as S
 
     p = sub.add_parser("render-db", help="render the localization database over the reference model")
     p.add_argument("project")
     # flags left out take project.toml [render_db], then RenderDbSettings' defaults (gtkit.settings.resolve)
     p.add_argument("--heights", type=_floats, default=None,
-                   help=f"heights above the model's ground level, m (default {S.heights})")
+                   help="heights above the model's ground level, m (default: from the queries' GPS altitudes above "
+                        f"the model's ground, else {G['heights']})")
     p.add_argument("--intervals", type=_floats, default=None,
-                   help=f"grid interval per height, m (default {S.intervals})")
+                   help="grid interval per height, m (default: from each height and the field of view; "
+                        f"{G['intervals']} for the default heights at 60 deg)")
     p.add_argument("--pitches", type=_floats, default=None,
-                   help=f"paper pitches from nadir: 0 = DJI -90, 45 = DJI -45 (default {S.paper_pitches})")
+                   help="paper pitches from nadir: 0 = DJI -90, 45 = DJI -45 (default: spanning the queries' gimbal "
+                        f"pitches, else {G['paper_pitches']})")
     p.add_argument("--yaw-step", type=float, default=None, help=f"deg (default {S.yaw_step})")
+    p.add_argument("--anchor", choices=("look_at", "camera"), default=None,
+                   help="grid positions are the points the views look at (look_at) or the camera centres (camera, "
+                        f"the paper) (default {S.anchor})")
     p.add_argument("--size", default=None, help=f"view size WxH (default {S.width}x{S.height})")
-    p.add_argument("--hfov", type=float, default=None, help=f"horizontal FOV, deg (default {S.hfov_deg})")
+    p.add_argument("--hfov", type=float, default=None,
+                   help=f"horizontal FOV, deg (default: the queries' median, 30-90, else {G['hfov_deg']})")
     p.add_argument("--min-valid", type=float, default=None,
                    help=f"drop views seeing less of the model than this share (default {S.min_valid_fraction})")
     p.add_argument("--texture-detail", choices=("views", "stored"), default=None,
@@ -61,7 +69,7 @@ def run(args):
     project = Project.load(args.project)
     s = resolve(database.RenderDbSettings(), "render_db", project, {
         "heights": args.heights, "intervals": args.intervals, "paper_pitches": args.pitches,
-        "yaw_step": args.yaw_step, "width": w, "height": h, "hfov_deg": args.hfov,
+        "yaw_step": args.yaw_step, "anchor": args.anchor, "width": w, "height": h, "hfov_deg": args.hfov,
         "min_valid_fraction": args.min_valid, "texture_detail": args.texture_detail,
         "tile_budget_mb": args.tile_budget_mb})
     out = database.run(project, s, executor_settings(args), force=args.force)

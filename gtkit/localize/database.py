@@ -25,7 +25,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -36,10 +36,11 @@ from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json
 from ..io.poses import write_intrinsics, write_poses
 from ..io.tiled import is_tiled
-from ..project import Project, file_fingerprint, mark_stage_done, settings_dict, stage_done, start_stage_clock
+from ..project import (Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done,
+                       start_stage_clock)
 from ..render.frustum import ray_box_fraction
 from .executors import ExecutorSettings, iter_map, make_executor
-from .grid import View, ground_level, make_views
+from .grid import ANCHORS, View, ground_level, make_views
 
 log = logging.getLogger(__name__)
 STAGE = "render_db"
@@ -48,19 +49,33 @@ STAGE = "render_db"
 PAPER_PITCHES = (0.0, 45.0)   # the UAVD4L paper's database pitches, from nadir
 
 
+# The grid when the queries say nothing (no GPS altitude / no gimbal angles / no intrinsics): the
+# paper's heights and intervals, its pitches plus 70 deg from nadir (= DJI -20: queries flown 15-70
+# deg below the horizon are then within 15 deg of a level; +50 % views; ablation 'render-paper'), 60 deg.
+PAPER_GRID = {"heights": (100.0, 150.0), "intervals": (50.0, 75.0), "paper_pitches": (*PAPER_PITCHES, 70.0),
+              "hfov_deg": 60.0}
+GRID_FIELDS = tuple(PAPER_GRID)
+
+
 @dataclass(frozen=True)
 class RenderDbSettings:
-    heights: tuple[float, ...] = (100.0, 150.0)       # H above the model's ground level (m), paper
-    intervals: tuple[float, ...] = (50.0, 75.0)       # grid interval alpha_t per height (m), paper
-    # From nadir: 0 = DJI -90, 45 = DJI -45 (the paper's two), and 70 = DJI -20 (not in the paper):
-    # queries are flown with the gimbal 15-70 deg below the horizon (20-75 deg off nadir), so with the
-    # paper's levels a 20 deg photo is 25-30 deg from its nearest views (too far for SIFT) or outside
-    # gamma_o; with 70 every query is within 15 deg of a level. +50 % views; ablation 'render-paper'.
-    paper_pitches: tuple[float, ...] = (*PAPER_PITCHES, 70.0)
+    # The grid (None = follows the queries, :func:`resolve_grid`; a value given in project.toml
+    # [render_db] or on the command line wins): heights H above the model's ground level (m) from
+    # the queries' GPS altitudes above the model's ground under them; grid interval alpha_t per
+    # height (m) from H and the field of view; pitches from nadir (0 = DJI -90, 45 = DJI -45) from
+    # the queries' gimbal pitches; the virtual camera's horizontal field of view from the queries'
+    # intrinsics. Without that information: PAPER_GRID.
+    heights: tuple[float, ...] | None = None
+    intervals: tuple[float, ...] | None = None
+    paper_pitches: tuple[float, ...] | None = None
     yaw_step: float = 45.0                            # alpha_theta (deg): 8 yaws, 8 views a pitch and position
+    # What the grid positions are: "camera" = camera centres (the paper: oblique views at the model's
+    # edges look off it and are dropped), "look_at" = the ground points the views look at (each
+    # camera stands H tan(pitch) back along its yaw): every view looks at the model.
+    anchor: str = "look_at"
     width: int = 640                                  # rendered view size (px)
     height: int = 480
-    hfov_deg: float = 60.0                            # horizontal field of view of the virtual camera
+    hfov_deg: float | None = None                     # horizontal field of view of the virtual camera
     min_valid_fraction: float = 0.5                   # drop views that see less model than this
     jpeg_quality: int = 95
     parts: str = "all"                                # part selector (which model parts a view draws)
@@ -119,11 +134,16 @@ def open_model(root: Path, model: str, frame, tile_budget_mb: float = 512.0, ani
 TEXTURE_DETAILS = ("views", "stored")
 
 
-def view_detail(s: "RenderDbSettings", ground_z: float):
-    """The texture detail the database views can show (None: textures as stored)."""
+def _check_texture_detail(s: "RenderDbSettings") -> None:
     if s.texture_detail not in TEXTURE_DETAILS:
         raise GtkitError(f"render-db texture_detail must be one of {', '.join(TEXTURE_DETAILS)}, "
                          f"got {s.texture_detail!r}")
+
+
+def view_detail(s: "RenderDbSettings", ground_z: float):
+    """The texture detail the database views can show (None: textures as stored); ``s``: a
+    resolved grid (:func:`resolve_grid`)."""
+    _check_texture_detail(s)
     if s.texture_detail == "stored":
         return None
     from ..render.texture_detail import TextureDetail
@@ -297,35 +317,151 @@ def _existing_fraction(path: Path) -> float | None:
 
 # --- the stage ----------------------------------------------------------------------------------
 
-def plan_views(project: Project, s: RenderDbSettings) -> tuple[list[View], dict]:
-    """The viewpoints for this model and settings, plus the extent and ground level used."""
-    if len(s.heights) != len(s.intervals):
+def _grid_given(s: RenderDbSettings) -> bool:
+    return all(getattr(s, k) is not None for k in GRID_FIELDS)
+
+
+def query_flight(project: Project, renderer, extent, ground_z: float, cells: int = 128,
+                 radius_m: float = 15.0) -> dict:
+    """What the query photos say about where they were flown: per photo with GPS and an altitude,
+    its height above the model's ground under it (the median top-surface height within ``radius_m``
+    of its position, from an orthographic height render; the ground level ``ground_z`` off the
+    model); its gimbal pitch off nadir where it has DJI angles; the field of view of each photo
+    whose intrinsics resolve (:func:`gtkit.queries.query_cameras`)."""
+    from ..io.exif import read_photo_meta
+    from ..queries import query_cameras, query_photos
+
+    names = query_photos(project)
+    out = {"n_queries": len(names), "agl_m": {}, "off_nadir_deg": {}, "hfov_deg": {}, "notes": []}
+    if not names:
+        return out
+    xmin, ymin, xmax, ymax = extent
+    gsd = max(xmax - xmin, ymax - ymin) / cells
+    hmap = renderer.render_ortho(xmin, ymin, xmax, ymax, gsd, with_rgb=False).depth  # row 0 = ymax
+    k = max(1, int(round(radius_m / gsd)))
+    for n in names:
+        m = read_photo_meta(project.paths.images / n)
+        if m.has_gimbal:
+            out["off_nadir_deg"][n] = 90.0 + float(m.gimbal_pitch)
+        if not (m.has_gps and m.altitude is not None):
+            continue
+        x, y, z = (float(v) for v in np.ravel(project.frame.wgs84_to_local(m.lon, m.lat, m.altitude))[:3])
+        r_, c_ = int((ymax - y) / gsd), int((x - xmin) / gsd)
+        win = hmap[max(0, r_ - k):max(0, r_ + k + 1), max(0, c_ - k):max(0, c_ + k + 1)]
+        ground = float(np.nanmedian(win)) if win.size and np.isfinite(win).any() else ground_z
+        if z - ground < 5.0:
+            out["notes"].append(f"{n}: GPS altitude {m.altitude:g} m is {z - ground:.1f} m above the model's ground "
+                                "under it: left out of the height envelope")
+            continue
+        out["agl_m"][n] = z - ground
+    try:
+        cams = query_cameras(project, names)
+        out["hfov_deg"] = {n: float(c.camera.hfov_deg()) for n, c in cams.items()}
+    except GtkitError as e:
+        out["notes"].append(f"query field of view unknown ({e})")
+    return out
+
+
+def resolve_grid(project: Project, s: RenderDbSettings, renderer, extent, ground_z: float
+                 ) -> tuple[RenderDbSettings, dict]:
+    """``s`` with every grid field left None filled in (see :class:`RenderDbSettings`), and a record
+    of where each came from. Heights, pitches and field of view follow the query photos' envelope
+    (:func:`gtkit.localize.grid.height_levels`, :func:`pitch_levels`; the median field of view,
+    30-90 deg), intervals the heights and field of view (:func:`level_interval`); what the queries
+    do not tell comes from :data:`PAPER_GRID`."""
+    from .grid import height_levels, level_interval, pitch_levels
+
+    src = {k: "settings" for k in GRID_FIELDS if getattr(s, k) is not None}
+    if _grid_given(s):
+        return s, {"source": src}
+    fl = query_flight(project, renderer, extent, ground_z)
+    ch: dict = {}
+    if s.hfov_deg is None:
+        if fl["hfov_deg"]:
+            ch["hfov_deg"] = float(round(np.clip(np.median(list(fl["hfov_deg"].values())), 30.0, 90.0), 1))
+            src["hfov_deg"] = f"queries ({len(fl['hfov_deg'])} photos' intrinsics, median)"
+        else:
+            ch["hfov_deg"], src["hfov_deg"] = PAPER_GRID["hfov_deg"], "default (no query intrinsics)"
+    if s.heights is None:
+        if fl["agl_m"]:
+            ch["heights"] = height_levels(list(fl["agl_m"].values()))
+            src["heights"] = f"queries ({len(fl['agl_m'])} photos' GPS altitude above the model's ground)"
+        else:
+            ch["heights"], src["heights"] = PAPER_GRID["heights"], "default (no query GPS altitude)"
+    if s.paper_pitches is None:
+        if fl["off_nadir_deg"]:
+            ch["paper_pitches"] = pitch_levels(list(fl["off_nadir_deg"].values()))
+            src["paper_pitches"] = f"queries ({len(fl['off_nadir_deg'])} photos' gimbal pitch)"
+        else:
+            ch["paper_pitches"], src["paper_pitches"] = PAPER_GRID["paper_pitches"], "default (no gimbal angles)"
+    heights = ch.get("heights", s.heights)
+    if s.intervals is None:
+        hfov = ch.get("hfov_deg", s.hfov_deg)
+        ch["intervals"] = tuple(level_interval(h, hfov) for h in heights)
+        src["intervals"] = "heights x field of view"
+    elif len(s.intervals) != len(heights):
+        raise GtkitError(f"[render_db] intervals {tuple(s.intervals)} need one value per height, and the "
+                         f"heights {heights} come from the queries: give heights too, or leave intervals out",
+                         project.paths.project_toml)
+    info = {"source": src, "queries": {"n": fl["n_queries"], "with_altitude": len(fl["agl_m"]),
+                                       "with_gimbal": len(fl["off_nadir_deg"]), "with_intrinsics": len(fl["hfov_deg"])},
+            "notes": fl["notes"]}
+    for key, vals in (("agl_m", fl["agl_m"]), ("off_nadir_deg", fl["off_nadir_deg"]), ("hfov_deg", fl["hfov_deg"])):
+        if vals:
+            v = np.array(list(vals.values()))
+            info["queries"][key + "_min_median_max"] = [round(float(x), 1) for x in (v.min(), np.median(v), v.max())]
+    return replace(s, **ch), info
+
+
+def plan_views(project: Project, s: RenderDbSettings) -> tuple[list[View], dict, RenderDbSettings]:
+    """The viewpoints for this model and settings, the extent, ground level and grid used, and the
+    settings with the grid resolved (:func:`resolve_grid`)."""
+    s = replace(s, **{k: tuple(float(v) for v in getattr(s, k)) for k in ("heights", "intervals", "paper_pitches")
+                      if getattr(s, k) is not None})
+    if s.heights is not None and s.intervals is not None and len(s.heights) != len(s.intervals):
         raise GtkitError(f"render-db needs one interval per height, got heights {s.heights} "
                          f"and intervals {s.intervals}")
     r = open_model(project.paths.root, s.model, project.frame, s.tile_budget_mb)
     try:
         b = model_bounds(r)
-        g = ground_level(r, b[0, 0], b[0, 1], b[1, 0], b[1, 1])
+        extent = (float(b[0, 0]), float(b[0, 1]), float(b[1, 0]), float(b[1, 1]))
+        g = ground_level(r, *extent)
+        s, grid = resolve_grid(project, s, r, extent, g)
     finally:
         r.release()
-    extent = (float(b[0, 0]), float(b[0, 1]), float(b[1, 0]), float(b[1, 1]))
-    views = make_views(extent, g, s.heights, s.intervals, s.paper_pitches, s.yaw_step)
-    return views, {"extent_xmin_ymin_xmax_ymax": extent, "ground_level_z": g}
+    if s.anchor not in ANCHORS:
+        raise GtkitError(f"render-db anchor must be one of {', '.join(ANCHORS)}, got {s.anchor!r}")
+    views = make_views(extent, g, s.heights, s.intervals, s.paper_pitches, s.yaw_step, s.anchor)
+    return views, {"extent_xmin_ymin_xmax_ymax": extent, "ground_level_z": g,
+                   "grid": {**grid, **{k: getattr(s, k) for k in GRID_FIELDS}}}, s
 
 
 def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSettings(),
         executor: ExecutorSettings = ExecutorSettings(), chunk: int = 8, force: bool = False) -> Path:
     """Render the database; returns its folder. Resumes view by view when settings match."""
     project = project if isinstance(project, Project) else Project.load(project)
-    view_detail(settings, 0.0)                   # an unknown texture_detail is refused before any work
+    _check_texture_detail(settings)              # an unknown texture_detail is refused before any work
     P = project.paths
     out = P.stage(STAGE)
-    inputs = {"model": model_fingerprint(P.root, settings.model)}
+    model_in = {"model": model_fingerprint(P.root, settings.model)}
+    inputs = dict(model_in)
+    if not _grid_given(settings):                # the grid follows the queries: their files are inputs
+        from ..queries import query_cameras, query_photos
+
+        names = query_photos(project)
+        inputs["queries"] = settings_key({n: file_fingerprint(P.images / n) for n in names})
+        try:
+            inputs["query_cameras"] = settings_key({n: c.camera.to_line() for n, c in query_cameras(project, names).items()})
+        except GtkitError:
+            inputs["query_cameras"] = "unresolved"
     if not force and stage_done(out, settings, inputs):
         log.info("render-db: up to date (%s)", out)
         return out
     start_stage_clock(out)
-    sd = view_record(settings_dict(settings), inputs)
+    views, info, settings_in = plan_views(project, settings)   # settings_in: the grid resolved
+    for k in ("heights", "intervals", "paper_pitches", "hfov_deg"):
+        log.info("render-db: %s = %s (%s)", k, getattr(settings_in, k), info["grid"]["source"][k])
+    sd = view_record(settings_dict(settings_in), model_in)
     sfile = out / "settings.json"
     if sfile.is_file() and view_record(**json.loads(sfile.read_text())) != sd:
         log.info("render-db: view settings changed; removing the old views")
@@ -334,7 +470,6 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
         for f in ("views.json", "poses.txt", "intrinsics.txt", "stage.json"):
             (out / f).unlink(missing_ok=True)
     write_json(sfile, sd)
-    views, info = plan_views(project, settings)
     fractions: dict[str, float] = {}
     todo = []
     for v in views:
@@ -348,7 +483,7 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
     if todo:
         g = info["ground_level_z"]
         record = json.loads(sfile.read_text())
-        tasks = [(str(P.root), asdict(settings), [v.as_dict() for v in todo[i:i + chunk]], g, record)
+        tasks = [(str(P.root), asdict(settings_in), [v.as_dict() for v in todo[i:i + chunk]], g, record)
                  for i in range(0, len(todo), chunk)]
         ex = make_executor(executor)
         try:
@@ -357,7 +492,7 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
         finally:
             ex.close()
     dt = time.perf_counter() - t0
-    cam = db_camera(settings)
+    cam = db_camera(settings_in)
     kept = [v for v in views if fractions[v.name] >= settings.min_valid_fraction]
     write_json(out / "views.json", {
         **info, "camera": cam.to_line(),
@@ -367,7 +502,7 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
     write_poses(out / "poses.txt", {f"{v.name}.jpg": v.pose() for v in kept}, header="render-db views")
     write_intrinsics(out / "intrinsics.txt", {f"{v.name}.jpg": cam for v in kept})
     disk = sum(f.stat().st_size for sub in ("images", "depth") for f in (out / sub).rglob("*") if f.is_file())
-    mark_stage_done(out, settings, inputs, n_views=len(views), n_kept=len(kept), n_rendered=len(todo),
+    mark_stage_done(out, settings, inputs, grid=info["grid"], n_views=len(views), n_kept=len(kept), n_rendered=len(todo),
                     seconds=round(dt, 2), views_per_s=round(len(todo) / dt, 3) if todo and dt > 0 else None,
                     disk_mb=round(disk / 2**20, 1), disk_kb_per_kept_view=round(disk / 2**10 / max(1, len(kept)), 1))
     log.info("render-db: %d of %d views kept (%d rendered in %.1f s)", len(kept), len(views), len(todo), dt)

@@ -66,17 +66,60 @@ def grid_positions(xmin: float, ymin: float, xmax: float, ymax: float, interval:
     return np.stack([xx.ravel(), yy.ravel()], axis=1)
 
 
+ANCHORS = ("camera", "look_at")
+
+
 def make_views(extent: tuple[float, float, float, float], ground_z: float, heights, intervals,
-               paper_pitches, yaw_step: float) -> list[View]:
-    """All viewpoints, ordered level by level, position by position."""
+               paper_pitches, yaw_step: float, anchor: str = "camera") -> list[View]:
+    """All viewpoints, ordered level by level, position by position. ``anchor``: what the grid
+    positions are: ``"camera"`` the camera centres (the paper), ``"look_at"`` the points on the
+    ground level the views look at (each camera stands ``H tan(pitch)`` back from its position along
+    its yaw), so oblique views look at the model from around it instead of off its edges."""
+    if anchor not in ANCHORS:
+        raise ValueError(f"anchor must be one of {ANCHORS}, got {anchor!r}")
     xmin, ymin, xmax, ymax = extent
     yaws = np.arange(0.0, 360.0 - 1e-9, yaw_step)
     views = []
     for H, a in zip(heights, intervals):
         for k, (x, y) in enumerate(grid_positions(xmin, ymin, xmax, ymax, a)):
             for pp in paper_pitches:
+                back = H * np.tan(np.radians(pp)) if anchor == "look_at" else 0.0
                 for yaw in yaws:
                     name = f"h{H:g}/p{k:04d}_t{pp:g}_y{yaw:03.0f}"
+                    # DJI yaw: clockwise from north (+y); the view looks along (sin yaw, cos yaw)
+                    cx = x - back * np.sin(np.radians(yaw))
+                    cy = y - back * np.cos(np.radians(yaw))
                     views.append(View(name, float(H), float(pp), float(yaw), paper_to_dji_pitch(pp), 0.0,
-                                      (float(x), float(y), float(ground_z + H))))
+                                      (round(float(cx), 3), round(float(cy), 3), float(ground_z + H))))
     return views
+
+
+# --- a grid that follows the queries (gtkit.localize.database.resolve_grid) -----------------------
+
+def height_levels(agl, max_ratio: float = 2.0, max_levels: int = 4) -> tuple[float, ...]:
+    """Database heights spanning the queries' heights above ground ``agl`` (5th-95th percentile):
+    as few levels as keep every height within ``sqrt(max_ratio)`` of one (a factor 2 between levels:
+    a query sees the ground at most 1.41x finer or coarser than its nearest level), geometric, whole
+    metres. A 45 m flight gets one level at 45 m; 50-200 m gets 71 and 141 m."""
+    h = np.asarray(agl, float)
+    lo, hi = (float(v) for v in np.percentile(h, [5, 95]))
+    n = int(min(max_levels, max(1, np.ceil(np.log(hi / lo) / np.log(max_ratio) - 1e-9))))
+    return tuple(sorted({float(round(lo * (hi / lo) ** ((k + 0.5) / n))) for k in range(n)}))
+
+
+def pitch_levels(off_nadir, max_step: float = 30.0) -> tuple[float, ...]:
+    """Database pitches (paper convention: degrees off nadir) spanning the queries' gimbal pitches
+    (5th-95th percentile) every ``max_step`` at most, so every query is within ``max_step / 2`` of a
+    level; a spread under 10 deg gets one level. Whole degrees, 0-85."""
+    p = np.clip(np.asarray(off_nadir, float), 0.0, 85.0)
+    lo, hi = (float(v) for v in np.percentile(p, [5, 95]))
+    if hi - lo < 10.0:
+        return (float(round((lo + hi) / 2)),)
+    n = int(np.ceil((hi - lo) / max_step - 1e-9)) + 1
+    return tuple(sorted({float(round(lo + k * (hi - lo) / (n - 1))) for k in range(n)}))
+
+
+def level_interval(height: float, hfov_deg: float) -> float:
+    """Grid interval of a level: the paper's H / 2 at its 60 deg field of view, scaled with the
+    footprint's width (``H tan(hfov / 2)``): 100 -> 50 m and 150 -> 75 m at 60 deg."""
+    return float(round(0.5 * height * np.tan(np.radians(hfov_deg) / 2) / np.tan(np.radians(30.0)), 1))
