@@ -50,6 +50,8 @@ def evaluate(project: Path) -> dict:
     fit = geo.get("fit") or {}
     out.update(gcp_m=geo.get("gcp_median_err_m"), check_m=geo.get("checkpoint_median_err_m"),
                fit=fit.get("mode"), share=(geo.get("gps_quality") or {}).get("share_kept"),
+               claim_h=(geo.get("gps_quality") or {}).get("absolute_accuracy_h_m"),
+               claim_v=(geo.get("gps_quality") or {}).get("absolute_accuracy_v_m"),
                error=geo.get("error") or b.get("error"))
     return out
 
@@ -95,15 +97,16 @@ def main(argv=None) -> int:
     work = a.work or Path(tempfile.mkdtemp(prefix="bench_real_sites_"))
     rows = []
     print("| variant | seed | registered | position err (m) | rotation err (deg) | tilt (deg) | heading (deg) | "
-          "GCP median (m) | check points (m) | fit | GPS kept | s | error |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "horizontal / vertical err (m) | claimed (m) | GCP median (m) | check points (m) | fit | GPS kept | s | error |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for v in a.variants:
         for s in a.seeds:
             r = run_one(a.preset, s, v, a.code.resolve(), work)
             rows.append({"variant": v, "seed": s, **r})
             print(f"| {v} | {s} | {r.get('registered', '-')} | {fmt(r.get('pos_m'))} | "
                   f"{fmt(r.get('rot_deg'))} | {fmt(r.get('tilt_deg'))} | {fmt(r.get('heading_deg'), 2)} | "
-                  f"{fmt(r.get('gcp_m'))} | {fmt(r.get('check_m'))} | {r.get('fit') or '-'} | {fmt(r.get('share'), 2)} | "
+                  f"{fmt(r.get('horizontal_m'), 2)} / {fmt(r.get('vertical_m'), 2)} | "
+                  f"{fmt(r.get('claim_h'), 1)} / {fmt(r.get('claim_v'), 1)} | {fmt(r.get('gcp_m'))} | {fmt(r.get('check_m'))} | {r.get('fit') or '-'} | {fmt(r.get('share'), 2)} | "
                   f"{r['seconds']:.0f} | {(r.get('error') or '')[:120]} |", flush=True)
     print("\nmedian and worst over seeds:")
     print("| variant | position median / worst (m) | rotation median / worst (deg) | tilt median / worst (deg) | "

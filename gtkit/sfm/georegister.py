@@ -24,7 +24,7 @@ import pycolmap
 from ..io.odm import GCP
 from .geometry import (RegistrationError, Sim3Fit, model_cameras, model_poses, robust_sim3, sim3_apply,
                        triangulate_clicks)
-from .gps_fit import gravity_held_fit
+from .gps_fit import claimed_accuracy, gravity_held_fit
 from .gravity import block_up
 from .plausibility import check_block
 from .similarity import collinearity, group_weighted_refit, umeyama
@@ -159,8 +159,8 @@ def _gps_quality(fit: Sim3Fit, kinds: np.ndarray, src: np.ndarray, tgt: np.ndarr
             "horizontal_residual_median_m": float(np.median(rh[inl])) if inl.any() else None,
             "vertical_residual_median_m": float(np.median(rv[inl])) if inl.any() else None,
             "stated_accuracy_m": float(np.median(stated)) if stated else None,
-            "absolute_accuracy_h_m": round(float(np.median(rh[inl]) / 1.1774), 3) if inl.any() else None,
-            "absolute_accuracy_v_m": round(float(1.4826 * np.median(rv[inl])), 3) if inl.any() else None}
+            **(claimed_accuracy(float(np.median(rh[inl]) / 1.1774), float(1.4826 * np.median(rv[inl])),
+                                float(np.median(stated)) if stated else None) if inl.any() else {})}
 
 
 def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: list[GCP],

@@ -89,6 +89,24 @@ def _theil_sen(t: np.ndarray, y: np.ndarray, rng, max_pairs: int = 20000) -> tup
     return slope, float(np.median(y - slope * t))
 
 
+# a common bias of positions without a stated accuracy does not show in their residuals; consumer
+# GPS is biased by metres (horizontal) and more in height, so no less than this is claimed for it
+UNSTATED_BIAS_H_M = 2.0
+UNSTATED_BIAS_V_M = 5.0
+
+
+def claimed_accuracy(scatter_h: float, scatter_v: float, stated: float | None) -> dict:
+    """The absolute accuracy (1 sigma) a block placed by GPS alone can claim: its positions' scatter
+    combined with a common bias that no residual shows (the stated accuracy, else as large as the
+    scatter and never under UNSTATED_BIAS_H_M / _V_M)."""
+    bias_h = stated if stated else max(scatter_h, UNSTATED_BIAS_H_M)
+    bias_v = stated if stated else max(scatter_v, UNSTATED_BIAS_V_M)
+    return {"scatter_h_m": round(float(scatter_h), 3), "scatter_v_m": round(float(scatter_v), 3),
+            "absolute_accuracy_h_m": round(float(np.hypot(scatter_h, bias_h)), 3),
+            "absolute_accuracy_v_m": round(float(np.hypot(scatter_v, bias_v)), 3),
+            "bias_assumed": not stated}
+
+
 def _effective_count(times: np.ndarray, res: np.ndarray, inl: np.ndarray) -> float:
     """How many independent positions the inliers are worth: n (1 - rho) / (1 + rho), rho the lag-one
     correlation of their residuals in capture order (>= 0)."""
@@ -201,8 +219,7 @@ def gravity_held_fit(names: list[str], src: np.ndarray, tgt: np.ndarray, times: 
         # what the site can claim in absolute terms: a common GPS bias would not show in the
         # residuals, so the single-position scatter bounds it; heights also carry the drift's unknown zero
         "n_effective": round(float(n_eff), 1),
-        # a common bias of the positions does not show in their residuals: taken as large as their scatter
-        "absolute_accuracy_h_m": round(float(np.sqrt(2.0) * max(sigma_h_axis, floor_h / 3.0)), 3),
-        "absolute_accuracy_v_m": round(float(sigma_v + abs(drift_m if use_drift else 0.0) / 2.0), 3),
+        **claimed_accuracy(sigma_h_axis, float(sigma_v + abs(drift_m if use_drift else 0.0) / 2.0),
+                           float(np.median(acc)) if np.any(acc > 0) else None),
     }
     return GpsFit(sim, inl, r_h, res_v_final, record)

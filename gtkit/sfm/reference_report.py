@@ -47,7 +47,10 @@ def _fit_lines(fit: dict, q: dict | None, plaus: dict | None) -> list[str]:
         out.append(f"- absolute accuracy the site can claim (1 sigma, from the GPS): ~{_f(q.get('absolute_accuracy_h_m'), 1)} m "
                    f"horizontal, ~{_f(q.get('absolute_accuracy_v_m'), 1)} m vertical"
                    + (f"; heading to ~{_f(q.get('heading_precision_deg'), 2)} deg" if q.get("heading_precision_deg") else "")
-                   + " (relative geometry is the SfM's: centimetres)")
+                   + (" (the positions agree among themselves to "
+                      f"{_f(q.get('scatter_h_m'), 2)} / {_f(q.get('scatter_v_m'), 2)} m; a common GPS bias cannot be "
+                      "measured from the photos and is assumed: give GCPs, or geo.txt with accuracy columns, to claim more)"
+                      if q.get("bias_assumed") else ""))
     if plaus:
         out.append(f"- plausibility: cameras above what they see in {_f(100 * (plaus.get('share_above_their_points') or 0), 0)} % "
                    f"of the photos, {_f(plaus.get('median_height_above_points_m'), 1)} m above it; median viewing direction "
