@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GtkitError
+from .mesh_parts import MeshPart
 
 BLOCK_BYTES = 16 << 20
 _USEMTL = re.compile(rb"^usemtl[ \t]+([^\r\n]*)\r?$", re.MULTILINE)
@@ -98,8 +99,6 @@ class ObjGeometry:
         its corners use, a part without a texture (or without uv on every corner) one per vertex
         with the material's ``Kd`` colour, triangles without a material grey (180). Each texture
         is decoded (PIL, RGB) when its part is yielded and not kept here."""
-        from .mesh import MeshPart
-
         if self.face_material is None:
             raise GtkitError("read with corners=True to draw the textured model", self.path)
         order = np.argsort(self.face_material, kind="stable")
