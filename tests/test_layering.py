@@ -44,3 +44,33 @@ def test_features_and_learned_do_not_import_each_other():
     from gtkit.localize.features import SiftExtractor, make_extractor, make_matcher
 
     assert isinstance(make_extractor("sift"), SiftExtractor) and make_matcher("nn-ratio") is not None
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(GTKIT.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def test_no_module_of_gtkit_imports_itself_in_a_circle():
+    """No import circle between gtkit's modules, counting imports inside functions too (gtkit/io/
+    mesh <-> obj_geometry and gtkit/view/ scene <-> model <-> process were the last ones)."""
+    files = {_module_name(f): f for f in GTKIT.rglob("*.py")}
+    graph = {}
+    for name, f in files.items():
+        graph[name] = {m for m in _imports(f) if m in files and m != name}
+    circles, state = [], {}
+
+    def visit(node, trail):  # depth-first; a grey node met again closes a circle
+        state[node] = "grey"
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == "grey":
+                circles.append(trail[trail.index(nxt):] + [nxt])
+            elif nxt not in state:
+                visit(nxt, trail + [nxt])
+        state[node] = "black"
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [name])
+    assert not circles, "import circles: " + "; ".join(" -> ".join(c) for c in circles)
+

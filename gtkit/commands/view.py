@@ -17,7 +17,8 @@ def run(args):
     import json
 
     from ..errors import GtkitError
-    from ..view.scene import ViewSettings, snapshots
+    from ..view.process import snapshots
+    from ..view.settings import ViewSettings
 
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))

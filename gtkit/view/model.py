@@ -324,7 +324,7 @@ def prepare_cache(project) -> str:
     Never fails the stage that calls it: returns one line saying what happened."""
     import time
 
-    from .scene import ViewSettings
+    from .settings import ViewSettings
 
     t = time.perf_counter()
     try:

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GtkitError
+from ..project import Project
+from .settings import ViewSettings
 
 
 def _serve(conn, root: str, width: int, height: int, settings: dict) -> None:
@@ -115,8 +117,6 @@ class SceneProcess:
     def __init__(self, project: str | Path, width: int = 1280, height: int = 800, settings=None, timeout_s: float = 300):
         from dataclasses import asdict
 
-        from .scene import ViewSettings
-
         ctx = mp.get_context("spawn")
         self._conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_serve, args=(child, str(project), int(width), int(height),
@@ -183,3 +183,22 @@ class SceneProcess:
         if self.proc.is_alive():
             self.proc.kill()
             self.proc.join(5)
+
+
+def snapshots(project: Project | str | Path, settings: ViewSettings | None = None, out_dir: Path | None = None,
+              orbit_frames: int = 36) -> dict:
+    """Write ``reports/scene_<view>.png`` for each snapshot view (rendered in a child process, see
+    :mod:`gtkit.view.process`); returns the files and timings: open (process start, load, build,
+    first frame), median frame time while orbiting, the renderer process's peak memory."""
+    project = project if isinstance(project, Project) else Project.load(project)
+    s = settings or ViewSettings()
+    out_dir = Path(out_dir) if out_dir else project.paths.reports
+    sp = SceneProcess(project.paths.root, s.width, s.height, s)
+    try:
+        shots = sp.snapshots(out_dir.absolute(), s.snapshots, orbit_frames)
+    finally:
+        sp.close()
+    info = {k: v for k, v in sp.info.items() if k != "reference_centres"}
+    return {"files": shots["files"], "open_s": round(sp.open_s, 3), **{k: round(info.pop(k), 3) for k in
+            ("load_s", "build_s", "first_frame_s", "open_cpu_s")}, **{k: shots[k] for k in ("frame_ms_median",
+            "frame_with_readback_ms_median", "max_rss_mb")}, **info}

@@ -37,33 +37,19 @@ from ..io.poses import read_intrinsics, read_poses
 from ..pose import Pose
 from ..project import Project
 from .model import view_model
+from .settings import LAYERS, SNAPSHOTS, ViewSettings  # noqa: F401 (LAYERS: part of this module's names)
 
 log = logging.getLogger(__name__)
 
 COLORS = {"model": "#c8c8c8", "reference": "#ffd400", "prior": "#9a9a9a", "pseudo_gt": "#00c853",
           "localized": "#2979ff", "gcp": "#ff1744", "residual": "#ff9100", "track": "#e040fb",
           "sight": "#f8bbd0", "unplaced": "#ff80ab", "tiepoint": "#00e5ff", "tiepoint_flagged": "#ffffff"}
-LAYERS = ("model", "reference", "queries", "gcps", "tiepoints", "targets")
 LEGEND = (("reference", "reference", "reference cameras"), ("prior", "prior", "query priors (photo metadata)"),
           ("pseudo_gt", "pseudo_gt", "pseudo-GT"), ("localized", "localized", "localized"),
           ("tiepoint", "tiepoint", "tie points"), ("tiepoint_flagged", "tiepoint_flagged", "tie points left out"),
           ("gcp", "gcp", "GCPs"), ("gcp_residuals", "residual", "GCP residuals x{scale:g}"),
           ("targets", "track", "targets and tracks"), ("sight", "sight", "lines of sight"),
           ("unplaced", "unplaced", "clicks not placed (ray)"))  # actor, colour, text
-SNAPSHOTS = ("oblique", "top")
-
-
-@dataclass
-class ViewSettings:
-    max_triangles: int = 60_000       # the model is decimated to at most this many triangles (frame time
-                                      # on CPU rendering grows with them; 60k at 1280x800: see docs/view.md)
-    width: int = 1280                 # snapshot size, pixels
-    height: int = 800
-    frustum_m: float | None = None    # frustum depth; default 3 % of the site's diagonal
-    residual_scale: float = 50.0      # GCP residual vectors drawn this many times longer
-    snapshots: tuple[str, ...] = SNAPSHOTS
-    layers: tuple[str, ...] = LAYERS  # what is drawn ("tracks" is taken for "targets")
-    legend: bool = True
 
 
 @dataclass
@@ -620,24 +606,3 @@ def peak_rss_mb() -> float:
     import resource
 
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
-
-
-def snapshots(project: Project | str | Path, settings: ViewSettings | None = None, out_dir: Path | None = None,
-              orbit_frames: int = 36) -> dict:
-    """Write ``reports/scene_<view>.png`` for each snapshot view (rendered in a child process, see
-    :mod:`gtkit.view.process`); returns the files and timings: open (process start, load, build,
-    first frame), median frame time while orbiting, the renderer process's peak memory."""
-    from .process import SceneProcess
-
-    project = project if isinstance(project, Project) else Project.load(project)
-    s = settings or ViewSettings()
-    out_dir = Path(out_dir) if out_dir else project.paths.reports
-    sp = SceneProcess(project.paths.root, s.width, s.height, s)
-    try:
-        shots = sp.snapshots(out_dir.absolute(), s.snapshots, orbit_frames)
-    finally:
-        sp.close()
-    info = {k: v for k, v in sp.info.items() if k != "reference_centres"}
-    return {"files": shots["files"], "open_s": round(sp.open_s, 3), **{k: round(info.pop(k), 3) for k in
-            ("load_s", "build_s", "first_frame_s", "open_cpu_s")}, **{k: shots[k] for k in ("frame_ms_median",
-            "frame_with_readback_ms_median", "max_rss_mb")}, **info}
