@@ -42,9 +42,9 @@ log = logging.getLogger(__name__)
 
 STAGES = ("sfm_reference", "model", "sfm_queries", "register", "report", "export_dsm", "export_ortho",
           "export_mesh", "export_coords", "overlays", "render_db", "localize", "track")
-# the stage records (work/<dir>/stage.json) that tell whether a stage ran or was up to date
-RECORDS = {"sfm_reference": "sfm_reference", "model": "model", "register": "register",
-           "export_dsm": "export_dsm", "export_ortho": "export_ortho", "export_mesh": "export_mesh",
+# the stage records (work/<glob>/stage.json) that tell whether a stage ran or was up to date
+RECORDS = {"sfm_reference": "sfm_reference", "model": "model", "sfm_queries": "sfm_queries/*", "register": "register",
+           "export_dsm": "export_dsm", "export_ortho": "export_ortho", "export_mesh": "export_mesh_*",
            "export_coords": "export_coordinates", "render_db": "render_db", "localize": "localize",
            "track": "track"}
 SUMMARY_FILE = "run.json"
@@ -100,10 +100,9 @@ def model_state(project: Project) -> tuple[str, Path | None]:
 
 def _record_time(project: Project, name: str) -> tuple | None:
     """When the stage's record(s) were last written (None: no record); unchanged = up to date."""
-    if name == "sfm_queries":       # one record per sequence
-        recs = sorted(project.paths.stage("sfm_queries").glob(f"*/{STAGE_RECORD}"))
-    else:
-        recs = [project.paths.stage(RECORDS[name]) / STAGE_RECORD] if name in RECORDS else []
+    if name not in RECORDS:
+        return None
+    recs = sorted(project.paths.work.glob(f"{RECORDS[name]}/{STAGE_RECORD}"))   # a sequence's, a format's
     times = tuple(r.stat().st_mtime_ns for r in recs if r.is_file())
     return times or None
 
