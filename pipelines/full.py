@@ -21,7 +21,7 @@ from pathlib import Path
 
 from gtkit.errors import GtkitError
 from gtkit.io.atomic import write_json
-from gtkit.project import PROJECT_FILE, Paths
+from gtkit.project import PROJECT_FILE, Paths, relative_paths
 
 from ._timing import timed
 
@@ -70,7 +70,7 @@ def main(root: str | Path, preset: str = "small", seed: int = 0) -> dict:
     summary["tracking"] = _timed(times, "track", track_pipeline.main, str(root),
                                  poses=str(loc_poses) if loc_poses.is_file() else "")
     summary["seconds"] = times
-    write_json(paths.reports / "summary.json", summary)
+    write_json(paths.reports / "summary.json", relative_paths(summary, root))  # portable: the project is "."
     return summary
 
 

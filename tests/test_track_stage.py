@@ -207,3 +207,21 @@ def test_uncertainty_matches_the_analytic_propagation_for_a_nadir_view():
                                  UncertaintySettings(samples=4000, sigma_px=0.0))
     expect = np.hypot(0.5, 100 * np.radians(0.2))
     assert abs(np.sqrt(u2["cov"][0, 0]) - expect) < 0.04
+
+
+def test_tracking_reports_name_paths_inside_the_project(project, tmp_path):
+    """`gtkit track` and `gtkit track evaluate` store paths relative to the project: a copy of the
+    project names no file of the folder they ran in (reports/tracking.json named the tracks and
+    the plot by absolute path)."""
+    import shutil
+
+    proj, _ = project
+    root = proj.paths.root
+    assert main(["track", str(root)]) == 0
+    assert main(["track", "evaluate", str(root)]) == 0
+    rep = json.loads(proj.paths.tracking_report.read_text())
+    assert rep["tracks"] == "exports/tracks.csv" and rep["plot"] == "reports/tracking.png"
+    copy = tmp_path / "elsewhere" / "site"
+    shutil.copytree(root, copy)
+    text = [p for p in copy.rglob("*") if p.is_file() and p.suffix in (".json", ".md", ".toml", ".csv", ".geojson")]
+    assert [str(p.relative_to(copy)) for p in text if str(root) in p.read_text(errors="replace")] == []

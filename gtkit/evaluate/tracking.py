@@ -28,7 +28,7 @@ from ..conventions import rotation_angle_deg
 from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json, write_text
 from ..io.poses import read_intrinsics, read_poses
-from ..project import Paths, Project
+from ..project import Paths, Project, relative_paths
 
 THRESHOLDS_M = (1.0, 3.0, 5.0, 10.0)
 
@@ -264,6 +264,7 @@ def evaluate_tracking(paths: Paths | str | Path, tracks: Path | None = None, out
     rep["per_detection"] = per
     if plot:
         rep["plot"] = str(plot_tracks(per, truth, out.with_suffix(".png")))
+    rep = relative_paths(rep, paths.root)  # portable: the tracks and the plot named inside the project
     write_json(out, rep)
     write_text(out.with_suffix(".md"), readable(rep))
     return rep

@@ -158,7 +158,7 @@ def run_raster_stage(project, settings, input, crs, offset, out, *, default_out:
     whether ``make`` needs the model's colours (see :func:`load_surface`)."""
     import logging
 
-    from ..project import mark_stage_done, stage_done
+    from ..project import mark_stage_done, relative_paths, stage_done
 
     src = Path(input) if input is not None else reference_model(project.paths)
     out = Path(out) if out is not None else default_out
@@ -168,6 +168,7 @@ def run_raster_stage(project, settings, input, crs, offset, out, *, default_out:
         logging.getLogger(__name__).info("%s %s is up to date (settings unchanged); skipping", label, out)
         return out
     source, frame = load_surface(src, project.frame, crs, offset, textures=textures)
-    summary = make(source, frame, out, settings, str(src))
+    # the source named in the GeoTIFF's tags and the record relative to the project (portable)
+    summary = make(source, frame, out, settings, relative_paths(str(src), project.paths.root))
     mark_stage_done(stage_dir, settings, inputs, **summary)
     return out
