@@ -20,7 +20,8 @@ sections over the stages' defaults (:mod:`gtkit.settings`), as each subcommand r
 
 The summary (also ``reports/run.json``) holds what a site without truth can state: photos
 registered, georegistration residuals and GPS quality (``reports/reference.json``), pseudo-GT photos
-registered and their stated sigma, photos localized, targets located, and seconds per stage.
+registered and their stated sigma, photos localized, targets located, and seconds per stage, and
+``problems``: the sequences a stage could not place (they need clicks, or photos), each with its reason.
 This module is the library side of ``gtkit run`` (gtkit/commands/run.py parses and prints).
 """
 from __future__ import annotations
@@ -412,6 +413,9 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
     tr = _load(P.stage("track") / "summary.json")
     if tr:
         out["tracking"] = {k: tr.get(k) for k in ("n_located", "n_detections", "median_sigma_h_m")}
+    out["problems"] = [f"query block {q}: {b['error']}" for q, b in (out.get("query_blocks") or {}).items()
+                       if "error" in b] + [f"pseudo-GT {q}: {e}" for q, e in
+                                           ((out.get("pseudo_gt") or {}).get("errors") or {}).items()]
     out["exports"] = sorted(_rel(project, f) for f in (P.dsm, P.ortho, P.mesh_export, P.coordinates) if f.exists())
     out["seconds"] = {r.name: r.seconds for r in results if r.status not in ("not selected",)}
     if seconds is not None:

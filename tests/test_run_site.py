@@ -205,3 +205,24 @@ def test_stage_selection():
         run_site.selected(run_site.RunOptions(skip=("mesh",)))
     with pytest.raises(GtkitError, match="comes after"):
         run_site.selected(run_site.RunOptions("localize", "register"))
+
+
+def test_sequences_that_could_not_be_placed_are_problems(tiny_sample, tmp_path, capsys):
+    """The summary lists what a stage could not do without stopping (a sequence's SfM, a sequence
+    registration needs clicks for); `gtkit run` then exits 1. Read from the stages' own files."""
+    from gtkit.commands.run import print_summary
+    from gtkit.io.atomic import write_json
+
+    root = _user_project(tiny_sample[0], tmp_path, queries=("seq1", "seq2"), gcp=False)
+    write_json(root / "work/sfm_queries/summary.json", {
+        "seq1": {"n_registered": 4, "n_images": 4}, "seq2": {"error": "no photos matching *_W.*", "n_images": 0}})
+    write_json(root / "work/register/registration.json", {
+        "n_registered": 0, "n_images": 4, "images": {},
+        "sequences": {"seq1": {"status": "error", "error": "no clicked tie points; automatic matches: too few",
+                               "needs_clicks": True}}})
+    s = run_site.collect(Project.load(root), [run_site.StageResult("register", "ran", 1.0)])
+    assert s["problems"] == ["query block seq2: no photos matching *_W.*",
+                             "pseudo-GT seq1: no clicked tie points; automatic matches: too few"]
+    print_summary(s)
+    out = capsys.readouterr().out
+    assert "query block   seq2: ERROR no photos matching" in out and "problem       pseudo-GT seq1" in out

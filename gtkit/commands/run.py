@@ -14,7 +14,8 @@ def register(sub):
         "localization, tracking, reports) and print a summary",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Run, in order, the stages that can run on what the project holds; a stage whose input is\n"
-                    "absent is skipped with the reason, a failing stage stops the run (exit 2) naming it.\n"
+                    "absent is skipped with the reason, a failing stage stops the run (exit 2) naming it;\n"
+                    "a query sequence that could not be placed is listed as a problem (exit 1).\n"
                     "Finished stages are up to date and only re-read. Stages: " + ", ".join(STAGES) + ".\n"
                     "Summary: printed and written to reports/run.json.")
     p.add_argument("project")
@@ -72,6 +73,8 @@ def print_summary(s: dict) -> None:
     print("stages        " + ", ".join(f"{k} {v['status']}" + (f" ({v['seconds']} s)" if v["status"] in ("ran", "up to date") else "")
                                        for k, v in s["stages"].items() if v["status"] != "not selected"))
     print(f"reports       {s['project']}/reports (run.json, reference.md, gt_report.md)")
+    for p in s.get("problems") or []:
+        print(f"problem       {p}")
 
 
 def run(args):
@@ -89,5 +92,6 @@ def run(args):
 
     opts = RunOptions(args.start, args.until, tuple(s for s in args.skip.split(",") if s),
                       executor_settings(args))
-    print_summary(run_site(args.project, opts, progress, starting))
-    return 0
+    s = run_site(args.project, opts, progress, starting)
+    print_summary(s)
+    return 1 if s.get("problems") else 0
