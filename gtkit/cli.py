@@ -12,13 +12,15 @@ import sys
 
 from . import __version__, commands
 from .errors import GtkitError
+from .logs import quiet_terminal
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gtkit", description="Photogrammetry and ground-truth toolkit "
                                      "for UAV 6-DoF visual localization.")
     parser.add_argument("--version", action="version", version=f"gtkit {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="debug logging; COLMAP, Open3D and Qt output on the terminal (else in work/<stage>/log.txt)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if not mod.name.startswith("_"):
@@ -34,10 +36,12 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    quiet = quiet_terminal(args.verbose)  # COLMAP, Open3D, Qt output -> work/<stage>/log.txt unless -v
     try:
-        rv = args.func(args)
+        with quiet as log:
+            rv = args.func(args)
     except GtkitError as e:
-        print(f"gtkit: error: {e}", file=sys.stderr)
+        print(f"gtkit: error: {e}" + (f" (full log: {log.log_path})" if log.log_path else ""), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("gtkit: interrupted; finished stages are kept and a re-run resumes", file=sys.stderr)

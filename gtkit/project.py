@@ -293,6 +293,9 @@ def reset_peak_rss() -> None:
 
 def start_stage_clock(stage_dir: Path) -> StageClock:
     """Start (or restart) measuring the stage that writes ``stage_dir``; read by :func:`mark_stage_done`."""
+    from .logs import stage_started
+
+    stage_started(stage_dir)  # under quiet_terminal: the C libraries' output goes to work/<stage>/log.txt
     clock = StageClock()
     _CLOCKS[_clock_key(stage_dir)] = clock
     _fold_peaks()

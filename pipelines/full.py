@@ -98,15 +98,22 @@ def _print_summary(s: dict) -> None:
 
 
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    from gtkit.logs import quiet_terminal
+
     ap = argparse.ArgumentParser(prog="python -m pipelines.full", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("project", help="project folder; a sample site is generated there if it holds none")
     ap.add_argument("--preset", default="small", help="sample preset when a site is generated")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("-v", "--verbose", action="store_true",
+                    help="COLMAP, Open3D and Qt output on the terminal (else in work/<stage>/log.txt)")
     a = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
-        _print_summary(main(a.project, a.preset, a.seed))
+        with quiet_terminal(a.verbose) as stage_log:
+            summary = main(a.project, a.preset, a.seed)
+        _print_summary(summary)
     except GtkitError as e:
-        print(f"gtkit: error: {e}", file=sys.stderr)
+        print(f"gtkit: error: {e}" + (f" (full log: {stage_log.log_path})" if stage_log.log_path else ""),
+              file=sys.stderr)
         sys.exit(2)

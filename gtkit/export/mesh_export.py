@@ -60,7 +60,7 @@ def run(project: Project | str | Path, settings: MeshExportSettings | None = Non
     out = out_dir / f"{settings.name}.{settings.format}"
     stage_dir = proj.paths.stage(f"{STAGE}_{settings.format}")
     inputs = stage_inputs(proj, src, crs, offset, out)
-    if out.is_file() and stage_done(stage_dir, settings, inputs):
+    if stage_done(stage_dir, settings, inputs) and out.is_file():  # stage_done first: it starts the clock and the log
         log.info("mesh %s is up to date (settings unchanged); skipping", out)
         return out
     mesh = load_model(src, proj.frame, crs, offset)  # world frame; CRS checked against the project

@@ -164,7 +164,7 @@ def run_raster_stage(project, settings, input, crs, offset, out, *, default_out:
     out = Path(out) if out is not None else default_out
     stage_dir = project.paths.stage(stage)
     inputs = stage_inputs(project, src, crs, offset, out)
-    if out.is_file() and stage_done(stage_dir, settings, inputs):
+    if stage_done(stage_dir, settings, inputs) and out.is_file():  # stage_done first: it starts the clock and the log
         logging.getLogger(__name__).info("%s %s is up to date (settings unchanged); skipping", label, out)
         return out
     source, frame = load_surface(src, project.frame, crs, offset, textures=textures)
