@@ -208,7 +208,7 @@ def run(project: Project | str | Path, settings: CoordinatesSettings | None = No
     inputs = {str(p): file_fingerprint(p) for p in (*pose_files, targets_file, gcp) if p}
     inputs.update(crs=frame.crs_spec, origin=list(frame.origin), out=str(out_dir))
     stage_dir = proj.paths.stage(STAGE)
-    if out_dir.is_dir() and stage_done(stage_dir, settings, inputs):
+    if stage_done(stage_dir, settings, inputs) and out_dir.is_dir():  # stage_done first: it starts the clock and the log
         log.info("coordinates in %s are up to date; skipping", out_dir)
         return {p.name: p for p in sorted(out_dir.iterdir()) if p.is_file()}
     written: dict[str, Path] = {}
@@ -235,6 +235,5 @@ def run(project: Project | str | Path, settings: CoordinatesSettings | None = No
                          proj.paths.root)
     mark_stage_done(stage_dir, settings, inputs, files=sorted(written), pose_files=[str(p) for p in pose_files],
                     targets_file=str(targets_file) if targets_file else None)
-    for k, p in written.items():
-        log.info("wrote %s", p)
+    log.info("coordinates: %s in %s", ", ".join(written), out_dir)
     return written

@@ -221,6 +221,11 @@ class PairObs:
     group: int
 
 
+def _names(names: list[str], most: int = 3) -> str:
+    """``a, b, c and 4 more``: a list of photos on one line."""
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
 def fit_rig(obs: list[PairObs], wide: Camera, zoom_init: list[ZoomSetting], R_init: np.ndarray,
             offset=(0.0, 0.0, 0.0)) -> Rig:
     """Robust least squares for R_zw and one zoom focal length per setting (principal point
@@ -289,7 +294,7 @@ def calibrate_pairs(pairs, wide_cams, zoom_init: list[ZoomSetting], zoom_group, 
     ``wide_cams[name]`` is each wide photo's (known) camera, ``zoom_init`` the nominal zoom
     settings, ``zoom_group[zoom_name]`` the index of a zoom photo's setting in ``zoom_init``,
     ``load_image(name)`` returns an RGB array."""
-    obs, Rs = [], []
+    obs, Rs, missed = [], [], []
     if len(pairs) > settings.max_pairs:
         pick = np.linspace(0, len(pairs) - 1, settings.max_pairs).round().astype(int)
         pairs = [pairs[i] for i in pick]
@@ -313,14 +318,18 @@ def calibrate_pairs(pairs, wide_cams, zoom_init: list[ZoomSetting], zoom_group, 
             if got is not None:
                 break
         if got is None:
-            log.info("rig: %s / %s: no homography with %d inliers", wname, zname, settings.min_inliers)
+            log.debug("rig: %s / %s: no homography with %d inliers", wname, zname, settings.min_inliers)
+            missed.append(zname)
             continue
         zp, wp, H = got
         # scale actually observed: sqrt(det) of H's linear part near the zoom image centre
         scale_hint[g] = float(np.sqrt(abs(np.linalg.det(_local_affine(H, zc.cx, zc.cy)))))
         Rs.append((len(zp), _rotation_from_h(H, wc.K(), zc.K())))
         obs.append(PairObs(zname, zp, wp, g))
-        log.info("rig: %s: %d inliers", zname, len(zp))
+        log.debug("rig: %s: %d inliers", zname, len(zp))
+    if missed:  # one line for all of them (each is in the DEBUG log)
+        log.info("rig: %d of %d wide/zoom pairs matched; no homography with %d inliers in %s", len(obs), len(obs) + len(missed),
+                 settings.min_inliers, _names(missed))
     if not obs:
         raise GtkitError("no wide/zoom pair could be matched; check that the zoom photos see part of "
                          "the wide photos and that the nominal zoom focal length is roughly right")

@@ -279,10 +279,16 @@ def run(project: Project | str | Path, settings: TrackSettings | None = None, fo
         add_smoothing(recs, s)
     csv_path, gj = write_outputs(recs, project, P.tracks)
     status: dict[str, int] = {}
+    missed: dict[str, list[dict]] = {}
     for r in recs:
         status[r["status"]] = status.get(r["status"], 0) + 1
         if r["status"] != "ok":
-            log.warning("track: %s %s: %s", r["label"], r["image"], r["message"])
+            missed.setdefault(r["status"], []).append(r)
+            log.debug("track: %s %s: %s", r["label"], r["image"], r["message"])
+    for st, rs in missed.items():  # one line a reason; each detection's message is in the CSV
+        names = [r["image"] for r in rs]
+        log.warning("track: %d detection(s) not placed (%s), e.g. %s: %s%s", len(rs), st, names[0], rs[0]["message"],
+                    f"; also {', '.join(names[1:4])}{' ...' if len(names) > 4 else ''}" if len(names) > 1 else "")
     sig = [r["sigma_h_m"] for r in recs if r.get("sigma_h_m") is not None]
     summary = {"n_detections": len(recs), "n_located": status.get("ok", 0), "status": status,
                "poses": str(pose_path), "pose_covariances": str(cov_path) if cov_path.is_file() else None,
