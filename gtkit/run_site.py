@@ -6,11 +6,12 @@
     register        pseudo-GT poses of the query photos                 gtkit register DIR
     report          pseudo-GT quality report                            gtkit report DIR
     export_dsm, export_ortho, export_mesh                               gtkit export dsm|ortho|mesh DIR
-    export_coords   cameras, GCPs and tracks as CSV / GeoJSON / geo.txt  gtkit export coords DIR
     overlays        the model drawn over each posed photo               gtkit overlay DIR
     render_db       the localization database                           gtkit render-db DIR
     localize        every query photo against the database              gtkit localize DIR
     track           targets from zoom-photo detections                  gtkit track calibrate DIR; gtkit track DIR
+    export_coords   cameras, GCPs and tracks as CSV / GeoJSON / geo.txt  gtkit export coords DIR (last: it
+                    exports the tracks too)
 
 A stage whose input is absent (no query sequences, no model, no detections ...) is skipped with one
 line saying why; a stage that fails (:class:`GtkitError`) stops the run with that line, naming the
@@ -42,7 +43,7 @@ from .project import STAGE_RECORD, Project
 log = logging.getLogger(__name__)
 
 STAGES = ("sfm_reference", "model", "sfm_queries", "register", "report", "export_dsm", "export_ortho",
-          "export_mesh", "export_coords", "overlays", "render_db", "localize", "track")
+          "export_mesh", "overlays", "render_db", "localize", "track", "export_coords")
 # the stage records (work/<glob>/stage.json) that tell whether a stage ran or was up to date
 RECORDS = {"sfm_reference": "sfm_reference", "model": "model", "sfm_queries": "sfm_queries/*", "register": "register",
            "export_dsm": "export_dsm", "export_ortho": "export_ortho", "export_mesh": "export_mesh_*",

@@ -83,7 +83,8 @@ def test_run_on_a_users_own_site(tiny_sample, tmp_path, capsys):
     assert rc == 0, out
     s = json.loads((root / "reports" / "run.json").read_text())
     st = s["stages"]
-    print(f"first run {first_s:.1f} s: " + ", ".join(f"{k} {v['status']} {v['seconds']}" for k, v in st.items()))
+    with capsys.disabled():     # the measured times, in the test log (pytest -s)
+        print(f"\nfirst run {first_s:.1f} s: " + ", ".join(f"{k} {v['status']} {v['seconds']}" for k, v in st.items()))
 
     # the model was imported, so none is built; the line says why
     assert st["model"]["status"] == "skipped" and "imported" in st["model"]["why"]
@@ -138,7 +139,8 @@ def test_run_on_a_users_own_site(tiny_sample, tmp_path, capsys):
     second_s = time.time() - t0
     out2 = capsys.readouterr().out
     s2 = json.loads((root / "reports" / "run.json").read_text())
-    print(f"second run {second_s:.1f} s (first {first_s:.1f} s)")
+    with capsys.disabled():
+        print(f"second run {second_s:.1f} s (first {first_s:.1f} s)")
     ran = {k: v["status"] for k, v in s2["stages"].items() if v["status"] not in ("up to date", "skipped")}
     assert ran == {"report": "ran"}, ran          # the report has no record: it is rewritten (cheap)
     assert second_s < 30 and second_s < first_s / 4, (second_s, first_s)
@@ -198,7 +200,7 @@ def test_run_builds_a_model_only_when_none_was_imported(tiny_sample, tmp_path, m
 
 def test_stage_selection():
     sel = run_site.selected(run_site.RunOptions("register", "overlays", ("export_mesh",)))
-    assert sel == ["register", "report", "export_dsm", "export_ortho", "export_coords", "overlays"]
+    assert sel == ["register", "report", "export_dsm", "export_ortho", "overlays"]
     from gtkit.errors import GtkitError
 
     with pytest.raises(GtkitError, match="unknown stage 'mesh'"):
