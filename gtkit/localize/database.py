@@ -362,6 +362,12 @@ def query_flight(project: Project, renderer, extent, ground_z: float, cells: int
     return out
 
 
+def grid_hfov(hfovs) -> float:
+    """The database views' field of view for queries of these fields of view: their median, 30-90
+    deg, in whole degrees (a calibration that moves it by a fraction of a degree keeps the views)."""
+    return float(round(float(np.clip(np.median(list(hfovs)), 30.0, 90.0))))
+
+
 def resolve_grid(project: Project, s: RenderDbSettings, renderer, extent, ground_z: float
                  ) -> tuple[RenderDbSettings, dict]:
     """``s`` with every grid field left None filled in (see :class:`RenderDbSettings`), and a record
@@ -378,7 +384,7 @@ def resolve_grid(project: Project, s: RenderDbSettings, renderer, extent, ground
     ch: dict = {}
     if s.hfov_deg is None:
         if fl["hfov_deg"]:
-            ch["hfov_deg"] = float(round(np.clip(np.median(list(fl["hfov_deg"].values())), 30.0, 90.0), 1))
+            ch["hfov_deg"] = grid_hfov(fl["hfov_deg"].values())
             src["hfov_deg"] = f"queries ({len(fl['hfov_deg'])} photos' intrinsics, median)"
         else:
             ch["hfov_deg"], src["hfov_deg"] = PAPER_GRID["hfov_deg"], "default (no query intrinsics)"
@@ -450,10 +456,11 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
 
         names = query_photos(project)
         inputs["queries"] = settings_key({n: file_fingerprint(P.images / n) for n in names})
-        try:
-            inputs["query_cameras"] = settings_key({n: c.camera.to_line() for n, c in query_cameras(project, names).items()})
-        except GtkitError:
-            inputs["query_cameras"] = "unresolved"
+        if settings.hfov_deg is None:
+            try:
+                inputs["query_hfov"] = grid_hfov(c.camera.hfov_deg() for c in query_cameras(project, names).values())
+            except (GtkitError, ValueError):
+                inputs["query_hfov"] = None
     if not force and stage_done(out, settings, inputs):
         log.info("render-db: up to date (%s)", out)
         return out
