@@ -40,7 +40,7 @@ def run(args):
             a = info["automatic"]
             print(f"{seq}: registered by automatic matches ({info['clicks']}): {a['n_photos_agreeing']}/{a['n_photos']} "
                   f"photos agree, {a['n_sim3_inliers']}/{a['n_point_pairs']} block-reference point pairs Sim(3) inliers, "
-                  f"RMSE {a['sim3_rmse_m']:.3f} m; {info['n_tiepoints_final_ba']} clicked tie points in the final BA")
+                  f"Sim(3) from {a.get('sim3_from')}; {info['n_tiepoints_final_ba']} clicked tie points in the final BA")
         else:
             print(f"{seq}: registered, {info['n_sim3_inliers']}/{info['n_tiepoints']} tie points Sim(3) inliers, {info['n_tiepoints_final_ba']} in the final BA, "
                   f"Sim(3) RMSE {info['sim3_rmse_m']:.3f} m")

@@ -178,39 +178,43 @@ def match_photo(pose: Pose, cam: Camera, kq: np.ndarray, dq: np.ndarray, ref: Re
 
 
 def _match_wide(pose: Pose, cam: Camera, ref: ReferencePoints, kq: np.ndarray, dq: np.ndarray, radius: float,
-                ratio: float, chunk: int = 1024) -> tuple[np.ndarray, np.ndarray]:
+                ratio: float, k: int = 10) -> tuple[np.ndarray, np.ndarray]:
     """(reference point rows, query keypoint indices) of the matches between the query keypoints and
-    the reference points projecting within ``radius`` of them from ``pose``: for each keypoint, the
-    ratio test among every such point (not only its 8 nearest, as :func:`_match` does), so a pose
-    off by a hundred pixels or more still finds its matches; one keypoint a reference point."""
+    the reference points projecting within ``radius`` of them from ``pose``, with the ratio test among
+    every such point (not only a keypoint's 8 nearest, as :func:`_match` does), so a pose off by a
+    hundred pixels or more still finds its matches. Each keypoint's ``k`` nearest descriptors
+    (FLANN): the best one within ``radius`` is compared with the next one within ``radius``, or,
+    when none of the ``k`` is, with the ``k``-th (every point not among them is farther). One
+    keypoint a reference point (the closest descriptor)."""
     uv, front = cam.project(pose.transform(ref.xyz))
     ok = np.flatnonzero(front & cam.in_image(uv, -radius))
-    if len(ok) < 2:
+    if len(ok) < k + 1 or len(kq) < 2:
         return np.zeros(0, int), np.zeros(0, int)
     to_cam = pose.center - ref.xyz[ok]
     to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
     cos = np.einsum("nkd,nd->nk", ref.dirs[ok], to_cam)
     cos[ref.img[ok] < 0] = -2.0
-    dr = ref.desc[ok, np.argmax(cos, axis=1)].astype(np.float32)
+    dr = np.ascontiguousarray(ref.desc[ok, np.argmax(cos, axis=1)], np.float32)
     uvo = uv[ok]
-    dr2 = (dr ** 2).sum(1)
-    uv2 = (uvo ** 2).sum(1)
-    rows, kks, dists = [], [], []
-    for a in range(0, len(kq), chunk):
-        q, k = dq[a:a + chunk], kq[a:a + chunk]
-        d2 = (q ** 2).sum(1)[:, None] + dr2[None, :] - 2.0 * q @ dr.T
-        near = (k ** 2).sum(1)[:, None] + uv2[None, :] - 2.0 * k @ uvo.T <= radius ** 2
-        d2 = np.where(near, np.maximum(d2, 0.0), np.inf)
-        two = np.argpartition(d2, 1, axis=1)[:, :2] if d2.shape[1] > 1 else np.zeros((len(q), 2), int)
-        b = np.take_along_axis(d2, two, 1)
-        first = np.argmin(b, axis=1)
-        best, second = b[np.arange(len(q)), first], b[np.arange(len(q)), 1 - first]
-        keep = np.isfinite(best) & (best < ratio ** 2 * second)   # squared distances
-        rows.append(two[np.arange(len(q)), first][keep])
-        kks.append(np.flatnonzero(keep) + a)
-        dists.append(best[keep])
-    rows, kk, dist = np.concatenate(rows), np.concatenate(kks), np.concatenate(dists)
-    order = np.lexsort((dist, rows))     # one query keypoint a reference point: the closest descriptor
+    flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
+    knn = flann.knnMatch(np.ascontiguousarray(dq, np.float32), dr, k=k)
+    idx = np.full((len(kq), k), -1, np.int64)
+    dist = np.full((len(kq), k), np.inf)
+    for q, ms in enumerate(knn):
+        for j, m in enumerate(ms):
+            idx[q, j], dist[q, j] = m.trainIdx, m.distance
+    valid = idx >= 0
+    near = valid & (np.linalg.norm(uvo[np.where(valid, idx, 0)] - kq[:, None, :], axis=2) <= radius)
+    has = near.any(axis=1)
+    first = np.argmax(near, axis=1)
+    rest = near.copy()
+    rest[np.arange(len(kq)), first] = False
+    second_j = np.argmax(rest, axis=1)
+    best = dist[np.arange(len(kq)), first]
+    second = np.where(rest.any(axis=1), dist[np.arange(len(kq)), second_j], dist[:, -1])
+    keep = has & np.isfinite(best) & (best < ratio * second)
+    rows, kk, d = idx[keep, first[keep]], np.flatnonzero(keep), best[keep]
+    order = np.lexsort((d, rows))     # one query keypoint a reference point: the closest descriptor
     uniq = np.ones(len(order), bool)
     uniq[1:] = rows[order][1:] != rows[order][:-1]
     sel = order[uniq]

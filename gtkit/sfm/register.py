@@ -23,6 +23,7 @@ c. final least-squares BA; its covariance gives each query photo's pose uncertai
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -67,6 +68,10 @@ class BootstrapSettings:
     max_pairs: int = 2000          # query-reference 3D point pairs the Sim(3) RANSAC draws from
     # a matched photo's pose farther than this from the prior that guided it is a false match
     max_offset_m: float = 60.0
+    # a matched photo agrees with the Sim(3) where its block pose, so moved, is within these of the
+    # pose its own matches gave it (a false match is tens of metres off)
+    agree_m: float = 3.0
+    agree_deg: float = 2.0
     # photos with GPS but no gimbal attitude (and no usable block pose): attitudes searched at their
     # GPS position, on up to ``search_photos`` photos of the sequence until one matches
     search_photos: int = 3
@@ -248,12 +253,14 @@ class Bootstrap:
     n_pairs: int = 0
     n_inliers: int = 0
     rmse_m: float | None = None
+    fit_from: str = ""
 
     def record(self) -> dict:
         matched = [n for n, r in self.photos.items() if r.get("n_matches")]
         return {"n_photos": len(self.photos), "n_photos_matched": len(matched),
                 "n_photos_agreeing": sum(1 for r in self.photos.values() if r.get("agrees")),
                 "n_point_pairs": self.n_pairs, "n_sim3_inliers": self.n_inliers, "sim3_rmse_m": self.rmse_m,
+                "sim3_from": self.fit_from,
                 "photos": self.photos, **({"reason": self.reason} if self.reason else {})}
 
 
@@ -263,20 +270,27 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
 
     Each registered photo is matched to the reference block's 3D points around the poses
     ``priors(name) -> [(label, Pose)]`` gives (its GPS + gimbal metadata, its pose in the block's own
-    GPS georegistration); ``match(name, prior) -> (Pose | None, reference xyz (n, 3), query keypoint
-    indices)`` (:func:`gtkit.sfm.crossmatch.match_photo_wide`). Photos with no prior, or none that
+    GPS georegistration); ``match(name, prior, wider) -> (Pose | None, reference xyz (n, 3), query
+    keypoint indices)`` (:func:`gtkit.sfm.crossmatch.match_photo_wide`; ``wider``: a photo that finds
+    nothing is searched again at twice the radius). Photos with no prior, or none that
     matched, are tried again around their block pose moved by a first Sim(3) from the matched ones.
     Where no photo matched at all, ``search(name) -> [(label, Pose)]`` (a photo's GPS position with
     a grid of attitudes: no gimbal tags) is tried on up to ``bootstrap.search_photos`` photos, the
     first that matches ending the search. A match farther than ``bootstrap.max_offset_m`` from the
     pose that guided it is taken for a false one.
     Each match whose query keypoint is a 3D point of the block is a pair (block point, reference
-    point); a robust Sim(3) (LO-RANSAC, ``sim3_max_error_m``) over all pairs places the block, and
-    it holds only where the inliers come from ``bootstrap.min_photos`` photos or more."""
+    point); a robust Sim(3) (LO-RANSAC, ``sim3_max_error_m``) over all pairs is one candidate, the
+    Sim(3)s from the matched photos' poses (:func:`_sim3_from_poses`, each pair of photos) the
+    others: the one most photos agree with wins (their block poses so moved within ``agree_m`` /
+    ``agree_deg`` of the poses their own matches gave them), refitted on them. A short sequence's
+    own 3D points can be metres off in depth (tiny seed 0's seq3 at 150 m: its point Sim(3) 13 m and
+    4.7 deg from all three photos' own poses), its relative poses are not. It holds only where
+    ``bootstrap.min_photos`` photos or more agree."""
     b = settings.bootstrap
     names = sorted(im.name for im in qrec.images.values() if im.has_pose)
     photos: dict[str, dict] = {n: {} for n in names}
     pairs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    matched_pose: dict[str, Pose] = {}     # each matched photo's own pose from its matches (PnP)
 
     def pairs_of(name, X_ref, kk):
         im = qrec.find_image_with_name(name)
@@ -289,20 +303,21 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
                 pid.append(p2.point3D_id)
         return np.array(src).reshape(-1, 3), np.array(tgt).reshape(-1, 3), np.array(pid, np.int64)
 
-    def try_photo(name, cands):
+    def try_photo(name, cands, wider=True):
         best = None
         for label, prior in cands:
-            pose, X_ref, kk = match(name, prior)
+            pose, X_ref, kk = match(name, prior, wider)
             if pose is not None and np.linalg.norm(pose.center - prior.center) > b.max_offset_m:
                 pose = None   # matched far from where its metadata put it: a false match
             if pose is not None and (best is None or len(kk) > len(best[2])):
-                best = (label, X_ref, kk)
+                best = (label, X_ref, kk, pose)
             if best is not None and label != "block GPS":   # the metadata pose found it: enough
                 break
         if best is None:
             return False
         photos[name] = {"n_matches": int(len(best[2])), "guided_by": best[0]}
         pairs[name] = pairs_of(name, best[1], best[2])
+        matched_pose[name] = best[3]
         return True
 
     for n in names:
@@ -320,7 +335,7 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
             if not cands or tried >= b.search_photos:
                 continue
             tried += 1
-            if try_photo(n, cands):
+            if try_photo(n, cands, wider=False):
                 break
             photos[n] = {"reason": (photos[n]["reason"] + "; " if photos[n].get("reason") else "")
                          + f"no match around its GPS position at any of {len(cands)} searched attitudes"}
@@ -355,20 +370,68 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
     try:
         f, src, tgt, who = fit()
     except RegistrationError as e:
-        return Bootstrap(None, f"{n_matched} of {len(names)} photos matched the reference points but {e}", photos)
-    agree = 0
+        f, src, who, point_err = None, np.zeros((0, 3)), np.zeros(0, int), str(e)
+    block = {n: Pose.from_pycolmap(qrec.find_image_with_name(n).cam_from_world()) for n in pairs}
+
+    def offsets(sim, n):
+        """(m, deg) between the photo's block pose moved by ``sim`` and the pose its matches gave it."""
+        Rs = np.asarray(sim.rotation.matrix())
+        moved = Pose.from_center(block[n].R @ Rs.T, np.asarray(sim * block[n].center))
+        return moved.error_to(matched_pose[n])
+
+    def agreeing(sim):
+        offs = {n: offsets(sim, n) for n in pairs}
+        ok = [n for n, (dm, dd) in offs.items() if dm <= b.agree_m and dd <= b.agree_deg]
+        return ok, float(np.mean([offs[n][0] for n in ok])) if ok else np.inf
+
+    hyps = [("block-reference point pairs", f.tgt_from_src)] if f is not None else []
+    for ij in itertools.islice(itertools.combinations(sorted(pairs), 2), 300):
+        h = _sim3_from_poses([block[n] for n in ij], [matched_pose[n] for n in ij],
+                             None if f is None else float(f.tgt_from_src.scale))
+        if h is not None:
+            hyps.append(("photo poses", h))
+    if not hyps:
+        return Bootstrap(None, f"{n_matched} of {len(names)} photos matched the reference points but {point_err}",
+                         photos)
+    scored = [(agreeing(h), how, h) for how, h in hyps]
+    (ok, _), how, sim = max(scored, key=lambda x: (len(x[0][0]), -x[0][1]))
+    if len(ok) >= 2:   # refit on every agreeing photo
+        h = _sim3_from_poses([block[n] for n in ok], [matched_pose[n] for n in ok],
+                             None if f is None else float(f.tgt_from_src.scale))
+        if h is not None and len(agreeing(h)[0]) >= len(ok):
+            how, sim, ok = "photo poses", h, agreeing(h)[0]
     for k, n in enumerate(pairs):
         mine = who == k
-        n_in = int(f.inliers[mine].sum())
-        photos[n].update({"n_pairs": int(mine.sum()), "n_sim3_inliers": n_in,
-                          "agrees": bool(n_in >= 6 and n_in >= 0.5 * mine.sum())})
-        agree += photos[n]["agrees"]
-    out = Bootstrap(f.tgt_from_src, "", photos, int(len(src)), int(f.inliers.sum()), float(f.rmse_inliers_m))
-    if agree < b.min_photos:
+        d_m, d_deg = offsets(sim, n)
+        photos[n].update({"n_pairs": int(mine.sum()), "n_sim3_inliers": int(f.inliers[mine].sum()) if f is not None else 0,
+                          "offset_m": float(d_m), "offset_deg": float(d_deg), "agrees": n in ok})
+    out = Bootstrap(sim, "", photos, int(len(src)), int(f.inliers.sum()) if f is not None else 0,
+                    float(f.rmse_inliers_m) if f is not None else None, fit_from=how)
+    if len(ok) < b.min_photos:
         out.sim = None
-        out.reason = (f"{n_matched} of {len(names)} photos matched the reference points, but only {agree} agree on "
+        out.reason = (f"{n_matched} of {len(names)} photos matched the reference points, but only {len(ok)} agree on "
                       f"one Sim(3) ({b.min_photos} needed)")
     return out
+
+
+def _sim3_from_poses(block: list[Pose], ref: list[Pose], fallback_scale: float | None) -> pycolmap.Sim3d | None:
+    """Sim(3) reference_from_block from photos' block poses and their poses in the reference frame:
+    the rotation the chordal mean of R_ref^T R_block, scale and translation least squares on the
+    centres (``fallback_scale`` where they span less than a metre, None without one)."""
+    M = sum(r.R.T @ q.R for q, r in zip(block, ref))
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    cs = np.array([q.center for q in block])
+    cr = np.array([r.center for r in ref])
+    a = (cs - cs.mean(0)) @ R.T
+    d = cr - cr.mean(0)
+    if len(block) >= 2 and np.linalg.norm(d, axis=1).max() >= 1.0 and (a * a).sum() > 0:
+        scale = float((a * d).sum() / (a * a).sum())
+    else:
+        scale = fallback_scale
+    if scale is None or not np.isfinite(scale) or scale <= 0:
+        return None
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(R), cr.mean(0) - scale * R @ cs.mean(0))
 
 
 # --- the joint model -----------------------------------------------------------------------
@@ -814,12 +877,17 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
                 out.append(("block GPS", Pose.from_pycolmap(qrec.find_image_with_name(name).cam_from_world())))
             return out
 
-        def match(name, prior):
-            feats = photo_features(db, name)
+        features: dict = {}
+
+        def match(name, prior, wider=True):
+            if name not in features:
+                features[name] = photo_features(db, name)
+            feats = features[name]
             if feats is None:
                 return None, np.zeros((0, 3)), np.zeros(0, int)
             ref = reference_points()
-            for radius in (settings.bootstrap.radius_px, 2 * settings.bootstrap.radius_px):   # then a wider search
+            radii = (settings.bootstrap.radius_px, 2 * settings.bootstrap.radius_px)
+            for radius in radii if wider else radii[:1]:   # then a wider search
                 pose, rows, kk = match_photo_wide(prior, cams[name], *feats, ref, settings.cross, radius)
                 if pose is not None:
                     break
@@ -860,9 +928,8 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
                 log.error("sequence %s not registered: %s", seq, err)
                 continue
             sim, st = boot.sim, []
-            log.info("sequence %s: placed by automatic matches (%s): %d of %d photos agree, Sim(3) RMSE %.2f m",
-                     seq, clicks_why,
-                     boot.record()["n_photos_agreeing"], len(boot.photos), boot.rmse_m)
+            log.info("sequence %s: placed by automatic matches (%s): %d of %d photos agree, Sim(3) from %s",
+                     seq, clicks_why, boot.record()["n_photos_agreeing"], len(boot.photos), boot.fit_from)
         qrec.transform(sim)
         blocks[seq], statuses[seq] = qrec, st
         if boot is None:

@@ -115,8 +115,8 @@ def _sequence_line(s: dict) -> str:
     if s.get("registered_by") == "automatic matches":
         a = s["automatic"]
         return (f"registered by automatic matches ({s.get('clicks')}); {a['n_photos_agreeing']}/{a['n_photos']} photos "
-                f"agree, {a['n_sim3_inliers']}/{a['n_point_pairs']} block-reference point pairs Sim(3) inliers, RMSE "
-                f"{_fmt(a.get('sim3_rmse_m'))} m; {s.get('n_tiepoints_final_ba')} clicked tie points in the final BA")
+                f"agree, {a['n_sim3_inliers']}/{a['n_point_pairs']} block-reference point pairs Sim(3) inliers, Sim(3) "
+                f"from {a.get('sim3_from')}; {s.get('n_tiepoints_final_ba')} clicked tie points in the final BA")
     return (f"registered; {s['n_sim3_inliers']}/{s['n_tiepoints']} tie points Sim(3) inliers, "
             f"{s.get('n_tiepoints_final_ba')} in the final BA, Sim(3) RMSE {s['sim3_rmse_m']:.3f} m")
 
