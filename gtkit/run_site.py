@@ -141,7 +141,8 @@ def st_model(project, opts):
 
     state, path = model_state(project)
     if state == "imported":
-        raise Skip(f"a model was imported ({_rel(project, path)}); not building one")
+        raise Skip(f"a model was imported or delivered ({_rel(project, path)}); not building one "
+                   "(`gtkit model build SITE --use` builds one and makes it the project's)")
     r = run(project, resolve(ModelSettings(), "model_build", project))
     from .view.model import prepare_cache
 

@@ -96,7 +96,7 @@ def test_run_on_a_users_own_site(tiny_sample, tmp_path, capsys):
 
     # the model was imported, so none is built; the line says why
     assert st["model"]["status"] == "skipped" and "imported" in st["model"]["why"]
-    assert "[model] skipped: a model was imported" in out
+    assert "[model] skipped: a model was imported or delivered (model/reference.obj)" in out
     # detections but no cameras.txt: the rig calibration takes the wide camera's from it, so tracking
     # says so and the run goes on (with cameras.txt it runs: the report names that run)
     assert st["track"]["status"] == "skipped" and "no cameras.txt" in st["track"]["why"], st["track"]
@@ -202,7 +202,7 @@ def test_run_builds_a_model_only_when_none_was_imported(tiny_sample, tmp_path, m
     assert gtkit(["import", "model", str(root), str(tiny_sample[0] / "model" / "reference.obj")]) == 0
     proj = Project.load(root)
     assert run_site.model_state(proj)[0] == "imported"
-    with pytest.raises(run_site.Skip, match="a model was imported"):
+    with pytest.raises(run_site.Skip, match="a model was imported or delivered"):
         run_site.st_model(proj, run_site.RunOptions())
     assert len(calls) == 1
 

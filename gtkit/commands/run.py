@@ -46,7 +46,9 @@ def print_summary(s: dict) -> None:
         print(f"reference     {ref.get('n_registered')}/{ref.get('n_images')} photos registered, "
               f"reprojection {_f(ref.get('mean_reproj_px'), '{:.2f}')} px; {geo}")
     m = s.get("model") or {}
-    print(f"model         {m.get('source')}" + (f" ({m['path']})" if m.get("path") else ""))
+    source = {"built": "built from the photos", "imported": "imported or delivered", "none": "none"}.get(
+        m.get("source"), m.get("source"))
+    print(f"model         {source}" + (f" ({m['path']})" if m.get("path") else ""))
     for seq, b in (s.get("query_blocks") or {}).items():
         print(f"query block   {seq}: " + (f"ERROR {b['error']}" if "error" in b else
                                           f"{b.get('n_registered')}/{b.get('n_images')} photos registered"))
