@@ -841,17 +841,29 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             if not settings.cross.enabled or not ref_db.is_file():
                 return None, 0, "automatic matching is off or the reference database is missing"
             priors = candidate_priors(name, qrec, lambda n: prior_pose(P.images / n, project.frame))
-            if not priors:
+            # its nearest registered neighbours' poses (in flight order), for a wider search
+            order = sorted({im.name for im in qrec.images.values() if im.has_pose} | {name})
+            k = order.index(name)
+            near = [Pose.from_pycolmap(qrec.find_image_with_name(n).cam_from_world())
+                    for n in sorted((n for n in order if n != name), key=lambda m: abs(order.index(m) - k))[:2]]
+            if not priors and not near:
                 return None, 0, "no GPS and gimbal angles to guide matching"
             feats = photo_features(P.stage(QUERIES_STAGE) / seq / "database.db", name)
             if feats is None:
                 return None, 0, "no features in its sequence's database"
             cam = Camera.from_pycolmap(qrec.cameras[sorted(qrec.cameras)[0]])
             found = [match_photo(p, cam, *feats, reference_points(), settings.cross) for p in priors]
-            pose, rows, _ = max(found, key=lambda f: len(f[1]))
+            pose, rows, _ = max(found, key=lambda f: len(f[1])) if found else (None, [], [])
+            if pose is None and settings.bootstrap.enabled:   # a wider search around its own and its neighbours' poses
+                found = [(g, match_photo_wide(g, cam, *feats, reference_points(), settings.cross,
+                                              settings.bootstrap.radius_px)) for g in priors[:1] + near]
+                found = [f for g, f in found if f[0] is not None
+                         and np.linalg.norm(f[0].center - g.center) <= settings.bootstrap.max_offset_m]
+                if found:
+                    pose, rows, _ = max(found, key=lambda f: len(f[1]))
             if pose is None:
                 return None, 0, (f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
-                                 "points around its metadata pose")
+                                 "points around its metadata pose" + (" or its neighbours' poses" if near else ""))
             return pose, len(rows), ""
         return match
 
