@@ -10,6 +10,14 @@ Per sequence:
    more than ``sim3_max_error_m`` are outliers. Fewer than 3 usable tie points, collinear ones,
    or a failed fit: the sequence is an error with its reason (never a prior pose).
 3. transform the query block.
+A sequence without 3 usable clicks (no ``tiepoints.json`` is no clicks) is placed without them
+(:func:`bootstrap_sequence`, ``[register.bootstrap]``): each of its photos is matched to the
+reference block's 3D points around the pose its metadata claims (GPS + gimbal; else its pose in
+the block's own GPS georegistration; else, with GPS alone, a grid of attitudes at its GPS
+position) within a radius that covers consumer GPS (:func:`gtkit.sfm.crossmatch.match_photo_wide`),
+and the Sim(3) most matched photos agree with places the block. A sequence this cannot hold is an
+error that names why and asks for clicks there (``needs_clicks`` in the record, the GT report's
+"Sequences that need clicks").
 Automatic tie points (SIFT matches between each query photo and the reference photos looking the
 same way, see :mod:`gtkit.sfm.crossmatch`) join the clicks from pass b on; they are not listed.
 Then one joint bundle adjustment (the reference photos holding tie clicks keep their poses and
