@@ -80,3 +80,55 @@ def test_a_sequence_that_cannot_be_placed_is_named_with_its_reason(no_clicks, tm
     assert rep["sequences_needing_clicks"] == {"seq2": s2["error"]}
     md = (root / "reports" / "gt_report.md").read_text()
     assert "## Sequences that need clicks" in md and f"- **seq2**: {s2['error']}" in md
+
+
+def test_bootstrap_takes_the_sim3_the_photos_agree_on_and_refuses_a_false_match():
+    """bootstrap_sequence on a block of 6 photos in its own frame (scale 0.1, turned, shifted): each
+    photo's 'matched' pose is its true pose with 5 cm / 0.05 deg of noise, one photo's is a false
+    match 25 m away. The Sim(3) comes from the photo poses, the false one does not agree, and the
+    block lands within a few cm of the truth; with only that photo and one other it is refused."""
+    import pycolmap
+
+    from gtkit.camera import Camera
+    from gtkit.conventions import dji_to_rotation
+    from gtkit.pose import Pose
+
+    rng = np.random.default_rng(3)
+    truth = {f"queries/seqA/{k:04d}_W.jpg": Pose.from_center(dji_to_rotation(10 + 4 * k, -45, 0), [3.0 * k, 1.0 * k, 90.0])
+             for k in range(6)}
+    R = pycolmap.Rotation3d(np.array([0.3, -0.2, 1.1])).matrix()
+    to_block = pycolmap.Sim3d(0.1, pycolmap.Rotation3d(R), np.array([5.0, -2.0, 1.0]))
+    rec = pycolmap.Reconstruction()
+    cam = Camera.pinhole(640, 480, 500.0).to_pycolmap()
+    cam.camera_id = 1
+    rec.add_camera_with_trivial_rig(cam)
+    for k, (n, p) in enumerate(truth.items()):
+        Cb = np.asarray(to_block * p.center)
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=n, keypoints=np.zeros((0, 2)), camera_id=1, image_id=k + 1),
+                                         Pose.from_center(p.R @ R.T, Cb).to_pycolmap())
+    false = "queries/seqA/0003_W.jpg"
+
+    def match(name, prior, wider=True):
+        p = truth[name]
+        dR = pycolmap.Rotation3d(rng.normal(0, np.radians(0.05), 3)).matrix()
+        C = p.center + rng.normal(0, 0.05, 3) + (np.array([25.0, 0.0, 0.0]) if name == false else 0.0)
+        return Pose.from_center(dR @ p.R, C), np.zeros((0, 3)), np.zeros(0, int)
+
+    priors = lambda n: [("metadata", Pose.from_center(truth[n].R, truth[n].center + [4.0, -3.0, 2.0]))]  # noqa: E731
+    s = register.RegisterSettings()
+    b = register.bootstrap_sequence(rec, priors, match, s)
+    assert b.sim is not None and b.fit_from == "photo poses", b.record()
+    assert not b.photos[false]["agrees"] and sum(p["agrees"] for p in b.photos.values()) == 5
+    rec.transform(b.sim)
+    for n, p in truth.items():
+        dm, dd = Pose.from_pycolmap(rec.find_image_with_name(n).cam_from_world()).error_to(p)
+        assert dm < 0.15 and dd < 0.2, (n, dm, dd)
+    # two photos, one of them the false match: nothing agrees on one Sim(3) with 2 photos -> refused
+    rec2 = pycolmap.Reconstruction()
+    rec2.add_camera_with_trivial_rig(cam)
+    for k, n in enumerate(["queries/seqA/0002_W.jpg", false]):
+        p = truth[n]
+        rec2.add_image_with_trivial_frame(pycolmap.Image(name=n, keypoints=np.zeros((0, 2)), camera_id=1, image_id=k + 1),
+                                          Pose.from_center(p.R @ R.T, np.asarray(to_block * p.center)).to_pycolmap())
+    b2 = register.bootstrap_sequence(rec2, priors, match, s)
+    assert b2.sim is None and "only" in b2.reason and "agree on one Sim(3) (2 needed)" in b2.reason, b2.reason
