@@ -129,6 +129,12 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
           f"| median tie-point reprojection error | {_fmt(rep.get('median_tiepoint_reproj_px'), 2)} px |",
           f"| clicked / automatic tie points in the joint BA | {rep.get('n_tiepoints_in_ba', 0)} / "
           f"{rep.get('n_auto_tiepoints_in_ba', 0)} |"]
+    seqs = rep.get("sequences") or {}
+    if seqs:
+        by = [s.get("registered_by", "clicked tie points") for s in seqs.values() if s["status"] == "registered"]
+        L.append(f"| sequences by clicked tie points / by automatic matches (no clicks) / need clicks | "
+                 f"{by.count('clicked tie points')} / {by.count('automatic matches')} / "
+                 f"{len(rep.get('sequences_needing_clicks') or {})} of {len(seqs)} |")
     L += list(checks.get("rows", []))
     ref = rep.get("reference_block")
     if ref:
