@@ -357,13 +357,47 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
             src, tgt, who = src[pick], tgt[pick], who[pick]
         return robust_sim3(src, tgt, settings.sim3_max_error_m, what="block-reference point matches"), src, tgt, who
 
+    def offsets(sim, n):
+        """(m, deg) between the photo's block pose moved by ``sim`` and the pose its matches gave it."""
+        Rs = np.asarray(sim.rotation.matrix())
+        block = Pose.from_pycolmap(qrec.find_image_with_name(n).cam_from_world())
+        moved = Pose.from_center(block.R @ Rs.T, np.asarray(sim * block.center))
+        return moved.error_to(matched_pose[n])
+
+    def agreeing(sim):
+        offs = {n: offsets(sim, n) for n in pairs}
+        ok = [n for n, (dm, dd) in offs.items() if dm <= b.agree_m and dd <= b.agree_deg]
+        return ok, float(np.mean([offs[n][0] for n in ok])) if ok else np.inf
+
+    def choose():
+        """(the Sim(3) most matched photos agree with or None, how, the agreeing photos, point fit, its
+        pair sources, error of the point fit)."""
+        try:
+            f = fit()
+            point_err = ""
+        except RegistrationError as e:
+            f, point_err = None, str(e)
+        scale = None if f is None else float(f[0].tgt_from_src.scale)
+        block = {n: Pose.from_pycolmap(qrec.find_image_with_name(n).cam_from_world()) for n in pairs}
+        hyps = [("block-reference point pairs", f[0].tgt_from_src)] if f is not None else []
+        for ij in itertools.islice(itertools.combinations(sorted(pairs), 2), 300):
+            h = _sim3_from_poses([block[n] for n in ij], [matched_pose[n] for n in ij], scale)
+            if h is not None:
+                hyps.append(("photo poses", h))
+        if not hyps:
+            return None, "", [], f, point_err
+        scored = [(agreeing(h), how, h) for how, h in hyps]
+        (ok, _), how, sim = max(scored, key=lambda x: (len(x[0][0]), -x[0][1]))
+        if len(ok) >= 2:   # refit on every agreeing photo
+            h = _sim3_from_poses([block[n] for n in ok], [matched_pose[n] for n in ok], scale)
+            if h is not None and len(agreeing(h)[0]) >= len(ok):
+                how, sim, ok = "photo poses", h, agreeing(h)[0]
+        return sim, how, ok, f, point_err
+
     # photos not matched around their own priors: around their block pose through a first Sim(3)
     missing = [n for n in names if n not in pairs]
     if pairs and missing:
-        try:
-            first = fit()[0].tgt_from_src
-        except RegistrationError:
-            first = None
+        first = choose()[0]
         if first is not None:
             for n in missing:
                 im = qrec.find_image_with_name(n)
@@ -375,46 +409,19 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
     if n_matched < b.min_photos:
         return Bootstrap(None, f"only {n_matched} of {len(names)} photos matched the reference points "
                                f"({b.min_photos} needed)", photos)
-    try:
-        f, src, tgt, who = fit()
-    except RegistrationError as e:
-        f, src, who, point_err = None, np.zeros((0, 3)), np.zeros(0, int), str(e)
-    block = {n: Pose.from_pycolmap(qrec.find_image_with_name(n).cam_from_world()) for n in pairs}
-
-    def offsets(sim, n):
-        """(m, deg) between the photo's block pose moved by ``sim`` and the pose its matches gave it."""
-        Rs = np.asarray(sim.rotation.matrix())
-        moved = Pose.from_center(block[n].R @ Rs.T, np.asarray(sim * block[n].center))
-        return moved.error_to(matched_pose[n])
-
-    def agreeing(sim):
-        offs = {n: offsets(sim, n) for n in pairs}
-        ok = [n for n, (dm, dd) in offs.items() if dm <= b.agree_m and dd <= b.agree_deg]
-        return ok, float(np.mean([offs[n][0] for n in ok])) if ok else np.inf
-
-    hyps = [("block-reference point pairs", f.tgt_from_src)] if f is not None else []
-    for ij in itertools.islice(itertools.combinations(sorted(pairs), 2), 300):
-        h = _sim3_from_poses([block[n] for n in ij], [matched_pose[n] for n in ij],
-                             None if f is None else float(f.tgt_from_src.scale))
-        if h is not None:
-            hyps.append(("photo poses", h))
-    if not hyps:
+    sim, how, ok, f, point_err = choose()
+    if sim is None:
         return Bootstrap(None, f"{n_matched} of {len(names)} photos matched the reference points but {point_err}",
                          photos)
-    scored = [(agreeing(h), how, h) for how, h in hyps]
-    (ok, _), how, sim = max(scored, key=lambda x: (len(x[0][0]), -x[0][1]))
-    if len(ok) >= 2:   # refit on every agreeing photo
-        h = _sim3_from_poses([block[n] for n in ok], [matched_pose[n] for n in ok],
-                             None if f is None else float(f.tgt_from_src.scale))
-        if h is not None and len(agreeing(h)[0]) >= len(ok):
-            how, sim, ok = "photo poses", h, agreeing(h)[0]
+    fit3, src, who = (f[0], f[1], f[3]) if f is not None else (None, np.zeros((0, 3)), np.zeros(0, int))
     for k, n in enumerate(pairs):
         mine = who == k
         d_m, d_deg = offsets(sim, n)
-        photos[n].update({"n_pairs": int(mine.sum()), "n_sim3_inliers": int(f.inliers[mine].sum()) if f is not None else 0,
+        photos[n].update({"n_pairs": int(mine.sum()),
+                          "n_sim3_inliers": int(fit3.inliers[mine].sum()) if fit3 is not None else 0,
                           "offset_m": float(d_m), "offset_deg": float(d_deg), "agrees": n in ok})
-    out = Bootstrap(sim, "", photos, int(len(src)), int(f.inliers.sum()) if f is not None else 0,
-                    float(f.rmse_inliers_m) if f is not None else None, fit_from=how)
+    out = Bootstrap(sim, "", photos, int(len(src)), int(fit3.inliers.sum()) if fit3 is not None else 0,
+                    float(fit3.rmse_inliers_m) if fit3 is not None else None, fit_from=how)
     if len(ok) < b.min_photos:
         out.sim = None
         out.reason = (f"{n_matched} of {len(names)} photos matched the reference points, but only {len(ok)} agree on "
