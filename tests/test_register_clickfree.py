@@ -68,6 +68,7 @@ def test_a_sequence_that_cannot_be_placed_is_named_with_its_reason(no_clicks, tm
     s2 = res["sequences"]["seq2"]
     assert s2["status"] == "error" and s2["needs_clicks"]
     assert "no clicked tie points" in s2["error"] and "0 of 3 photos matched the reference points" in s2["error"]
+    assert "3 with no GPS + gimbal metadata and no GPS georegistration of its block" in s2["error"]
     assert "click 3 or more tie points in its photos (queries/seq2/)" in s2["error"]
     assert all("no GPS + gimbal metadata" in p["reason"] for p in s2["automatic"]["photos"].values())
     assert f"seq2: ERROR {s2['error']}" in out

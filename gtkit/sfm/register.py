@@ -407,8 +407,11 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
                     photos[n].pop("reason", None)
     n_matched = len(pairs)
     if n_matched < b.min_photos:
+        whys = [r["reason"] for r in photos.values() if r.get("reason")]
+        common = max(set(whys), key=whys.count) if whys else ""
         return Bootstrap(None, f"only {n_matched} of {len(names)} photos matched the reference points "
-                               f"({b.min_photos} needed)", photos)
+                               f"({b.min_photos} needed" + (f"; {whys.count(common)} with {common}" if common else "")
+                         + ")", photos)
     sim, how, ok, f, point_err = choose()
     if sim is None:
         return Bootstrap(None, f"{n_matched} of {len(names)} photos matched the reference points but {point_err}",
