@@ -379,7 +379,12 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
         geo, held = ref.get("georegistration") or {}, ref.get("held_by_positions") or {}
         out["reference"] = {
             "n_registered": ref.get("n_registered"), "n_images": ref.get("n_images"), "n_models": ref.get("n_models"),
-            "mean_reproj_px": ref.get("mean_reproj_px"), "georegistered_with": geo.get("used"),
+            "mean_reproj_px": ref.get("mean_reproj_px"),
+            "georegistered_with": geo.get("fitted_to") or geo.get("used"),
+            "tilt_from": (geo.get("fit") or {}).get("tilt_from"),
+            "absolute_accuracy_h_m": (geo.get("gps_quality") or {}).get("absolute_accuracy_h_m"),
+            "absolute_accuracy_v_m": (geo.get("gps_quality") or {}).get("absolute_accuracy_v_m"),
+            "altitude_drift_m": (geo.get("gps_quality") or {}).get("altitude_drift_m"),
             "n_inliers": geo.get("n_inliers"), "rmse_m": geo.get("rmse_m"),
             "gcp_median_err_m": geo.get("gcp_median_err_m"), "gcp_rmse_m": geo.get("gcp_rmse_m"),
             "checkpoint_median_err_m": geo.get("checkpoint_median_err_m"),

@@ -35,7 +35,12 @@ def print_summary(s: dict) -> None:
     ref, pg, loc, tr = (s.get(k) or {} for k in ("reference", "pseudo_gt", "localization", "tracking"))
     print(f"\n== gtkit run on {s['project']}")
     if ref:
-        geo = f"georegistered by {ref.get('georegistered_with')}: {ref.get('n_inliers')} inliers, RMSE {_f(ref.get('rmse_m'), unit=' m')}"
+        geo = f"georegistered to {ref.get('georegistered_with')}, RMSE {_f(ref.get('rmse_m'), unit=' m')}"
+        if ref.get("tilt_from"):
+            geo += f", tilt held by gravity ({ref['tilt_from']})"
+        if ref.get("absolute_accuracy_h_m") is not None and not ref.get("gcp_median_err_m"):
+            geo += (f"; absolute accuracy ~{ref['absolute_accuracy_h_m']:.1f} m horizontal / "
+                    f"~{ref.get('absolute_accuracy_v_m') or 0:.1f} m vertical (GPS)")
         if ref.get("gcp_median_err_m") is not None:
             geo += f", GCP median {_f(ref['gcp_median_err_m'], unit=' m')}"
         if ref.get("checkpoint_median_err_m") is not None:

@@ -145,9 +145,40 @@ def pairing_positions(project: Project, names: list[str], centres: dict[str, np.
     return out
 
 
-def camera_groups(project: Project, names: list[str], positions: dict) -> list[CameraGroup]:
-    """One group per distinct cameras.txt calibration; images without one: one group per folder."""
+def reference_calibrations(project: Project, names: list[str]) -> dict[str, Camera]:
+    """{photo: the reference block's calibration of the same camera (EXIF make, model, size and focal:
+    gtkit.queries.camera_key)} for photos that are not reference photos: a query sequence shot with
+    a reference camera (held-out photos of the same flight) starts from the calibration its many
+    photos made, instead of calibrating itself from a handful."""
+    from ..queries import camera_key
+
+    f = project.paths.stage(REFERENCE_STAGE) / "intrinsics.txt"
+    if not f.is_file():
+        return {}
+    ref = read_intrinsics(f)
+    by_key: dict[tuple, Camera] = {}
+    for n, c in sorted(ref.items()):
+        try:
+            by_key.setdefault(camera_key(read_photo_meta(project.paths.images / n)), c)
+        except GtkitError:
+            continue
+    out = {}
+    for n in names:
+        try:
+            k = camera_key(read_photo_meta(project.paths.images / n))
+        except GtkitError:
+            continue
+        if (k[0] or k[1]) and k in by_key:
+            out[n] = by_key[k]
+    return out
+
+
+def camera_groups(project: Project, names: list[str], positions: dict,
+                  calibrations: dict[str, Camera] | None = None) -> list[CameraGroup]:
+    """One group per distinct cameras.txt calibration (else ``calibrations``' entry, e.g. the
+    reference block's calibration of the same camera); images without either: one group per folder."""
     cams: dict[str, Camera] = read_intrinsics(project.paths.cameras) if project.paths.cameras.is_file() else {}
+    cams = {**(calibrations or {}), **cams}
     groups: dict[tuple, CameraGroup] = {}
     for n in names:
         c = cams.get(n)
@@ -392,7 +423,8 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     t0, c0 = time.time(), cpu_seconds()
     positions, accuracy = gps_positions_and_accuracy(project, names)
     look = pairing_positions(project, names, positions) if settings.pair_by_footprint else positions
-    groups = camera_groups(project, names, positions)
+    groups = camera_groups(project, names, positions,
+                           reference_calibrations(project, names) if kind == "sequence" else None)
     db = out / "database.db"
     m = settings.matching
     # features + matches are reused when nothing that made them changed (mapping settings may)
@@ -558,10 +590,21 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                                               "fixed": cid in policy["constant_cameras"],
                                               "refined": _refined_parts(cid, policy, focal_check)}
                                    for cid, c in rec.cameras.items()}})
-    (out / "model").mkdir(exist_ok=True)
-    rec.write(out / "model")
-    write_poses(out / "poses.txt", model_poses(rec), header=f"{label}: {summary['frame']}")
-    write_intrinsics(out / "intrinsics.txt", model_cameras(rec))
+    if kind == "reference" and "error" in summary.get("georegistration", {}):
+        # a reference block that could not be placed in the world is kept apart (for inspection), so
+        # that no later stage builds on it
+        import shutil
+
+        for f in ("poses.txt", "intrinsics.txt"):
+            (out / f).unlink(missing_ok=True)
+        shutil.rmtree(out / "model", ignore_errors=True)
+        (out / "unplaced_model").mkdir(exist_ok=True)
+        rec.write(out / "unplaced_model")
+    else:
+        (out / "model").mkdir(exist_ok=True)
+        rec.write(out / "model")
+        write_poses(out / "poses.txt", model_poses(rec), header=f"{label}: {summary['frame']}")
+        write_intrinsics(out / "intrinsics.txt", model_cameras(rec))
     summary["seconds"] = {"features": t_feat - t0, "matching": t_match - t_feat, "mapping": t_map - t_match,
                           "georegistration": t_geo - t_map}
     summary["cpu_seconds"] = {"features": round(c_feat - c0, 1), "matching": round(c_match - c_feat, 1),
@@ -620,6 +663,8 @@ def run_queries(project: Project | str | Path, settings: SfmSettings | None = No
             result[seq] = {"block": seq, "error": f"no photos matching {settings.query_pattern}", "n_images": 0}
             continue
         inputs = _inputs(project, names)
+        # a sequence shot with a reference camera starts from its calibration (reference_calibrations)
+        inputs["reference_intrinsics"] = file_fingerprint(P.stage(REFERENCE_STAGE) / "intrinsics.txt")
         if not force and stage_done(out, settings, inputs):
             result[seq] = json.loads((out / "block.json").read_text())
             continue
