@@ -26,6 +26,7 @@ from pathlib import Path
 
 from .camera import Camera
 from .errors import GtkitError
+from .io.exif import camera_key  # noqa: F401 (named here too: which query photos share a camera)
 from .project import Project
 
 IMAGE_EXT = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
@@ -60,12 +61,6 @@ def query_photos(project: Project, seq: str | None = None, pattern: str | None =
 class QueryCamera:
     camera: Camera
     source: str        # where it came from, e.g. "cameras.txt", "work/sfm_queries/seq1/intrinsics.txt"
-
-
-def camera_key(meta) -> tuple:
-    """What makes two photos 'the same camera': EXIF make, model, image size and focal length."""
-    f = None if meta.focal_mm is None else round(float(meta.focal_mm), 2)
-    return (meta.make or "", meta.model or "", meta.width, meta.height, f)
 
 
 def _focal_plane_px_per_mm(path: Path) -> float | None:

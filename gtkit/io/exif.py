@@ -57,6 +57,12 @@ class PhotoMeta:
         return asdict(self)
 
 
+def camera_key(meta) -> tuple:
+    """What makes two photos 'the same camera': EXIF make, model, image size and focal length."""
+    f = None if meta.focal_mm is None else round(float(meta.focal_mm), 2)
+    return (meta.make or "", meta.model or "", meta.width, meta.height, f)
+
+
 def _dms(v, ref) -> float:
     d, m, s = (float(x) for x in v)
     val = d + m / 60.0 + s / 3600.0
