@@ -349,7 +349,9 @@ def run(root: str | Path, opts: RunOptions | None = None, progress: Callable[[St
         if failed is not None:
             break
     summary = collect(project, results, round(time.time() - t_all, 1))
-    write_json(project.paths.reports / SUMMARY_FILE, summary)
+    from .project import relative_paths
+
+    write_json(project.paths.reports / SUMMARY_FILE, relative_paths(summary, project.paths.root))
     if failed is not None:
         raise failed
     return summary

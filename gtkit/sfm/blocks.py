@@ -147,10 +147,10 @@ def pairing_positions(project: Project, names: list[str], centres: dict[str, np.
 
 def reference_calibrations(project: Project, names: list[str]) -> dict[str, Camera]:
     """{photo: the reference block's calibration of the same camera (EXIF make, model, size and focal:
-    gtkit.queries.camera_key)} for photos that are not reference photos: a query sequence shot with
+    gtkit.io.exif.camera_key)} for photos that are not reference photos: a query sequence shot with
     a reference camera (held-out photos of the same flight) starts from the calibration its many
     photos made, instead of calibrating itself from a handful."""
-    from ..queries import camera_key
+    from ..io.exif import camera_key
 
     f = project.paths.stage(REFERENCE_STAGE) / "intrinsics.txt"
     if not f.is_file():
