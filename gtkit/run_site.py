@@ -422,8 +422,10 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
     tr = _load(P.stage("track") / "summary.json")
     if tr:
         out["tracking"] = {k: tr.get(k) for k in ("n_located", "n_detections", "median_sigma_h_m")}
+    placed = {q for q, by in ((out.get("pseudo_gt") or {}).get("registered_by") or {}).items() if by}
+    # a query block whose SfM failed is a problem only where the registration could not place its photos either
     out["problems"] = [f"query block {q}: {b['error']}" for q, b in (out.get("query_blocks") or {}).items()
-                       if "error" in b] + [f"pseudo-GT {q}: {e}" for q, e in
+                       if "error" in b and q not in placed] + [f"pseudo-GT {q}: {e}" for q, e in
                                            ((out.get("pseudo_gt") or {}).get("errors") or {}).items()]
     out["exports"] = sorted(_rel(project, f) for f in (P.dsm, P.ortho, P.mesh_export, P.coordinates) if f.exists())
     out["seconds"] = {r.name: r.seconds for r in results if r.status not in ("not selected",)}

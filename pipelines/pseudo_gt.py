@@ -44,7 +44,7 @@ def main(root: str, sfm: blocks.SfmSettings | None = None, reg: register.Registe
     if project.paths.query_sequences():
         qb = stage("sfm_queries", blocks.run_queries, project, sfm, force=force)
     r = {}
-    if qb and project.paths.tiepoints.is_file():
+    if qb:   # no tiepoints.json: sequences placed by automatic matches
         r = stage("register", register.run, project, reg, force=force)
     summary = stage("report", report.run, project, rep)
     return {"seconds": times, "reference": {k: ref.get(k) for k in ("n_registered", "n_images", "mean_reproj_px")},

@@ -41,6 +41,10 @@ def run(args):
             print(f"{seq}: registered by automatic matches ({info['clicks']}): {a['n_photos_agreeing']}/{a['n_photos']} "
                   f"photos agree, {a['n_sim3_inliers']}/{a['n_point_pairs']} block-reference point pairs Sim(3) inliers, "
                   f"Sim(3) from {a.get('sim3_from')}; {info['n_tiepoints_final_ba']} clicked tie points in the final BA")
+        elif info.get("registered_by", "").startswith("single photos"):
+            n = sum(1 for r_ in (info.get("left_out_by_sfm") or {}).values() if r_.get("resected"))
+            print(f"{seq}: {info['registered_by']}: {n}/{len(info.get('left_out_by_sfm') or {})} photos resected "
+                  "from automatic matches to the reference")
         else:
             print(f"{seq}: registered, {info['n_sim3_inliers']}/{info['n_tiepoints']} tie points Sim(3) inliers, {info['n_tiepoints_final_ba']} in the final BA, "
                   f"Sim(3) RMSE {info['sim3_rmse_m']:.3f} m")

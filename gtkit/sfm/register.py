@@ -824,7 +824,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     P = project.paths
     if settings.smooth_surface.choose not in ("test", "smooth"):
         raise GtkitError(f'[register.smooth_surface] choose = "{settings.smooth_surface.choose}": '
-                         'expected "test" or "smooth"', project.root / PROJECT_FILE)
+                         'expected "test" or "smooth"', project.paths.root / PROJECT_FILE)
     out = P.stage(STAGE)
     ref_dir = P.stage(REFERENCE_STAGE) / "model"
     if not ref_dir.is_dir():
@@ -853,6 +853,43 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             ref_points["ref"] = ReferencePoints(ref_rec, ref_db, settings.cross.descriptors_per_point)
         return ref_points["ref"]
 
+    def reference_neighbour_priors(name: str, k: int = 2) -> list[Pose]:
+        """Poses at the photo's GPS position with the attitude of the nearest reference photos (a photo
+        held out of the reference flight looks the way its neighbours do), at its GPS height and at
+        theirs (consumer altitudes drift)."""
+        try:
+            m = read_photo_meta(P.images / name)
+        except GtkitError:
+            return []
+        if not m.has_gps or m.altitude is None:
+            return []
+        C = project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
+        refs = sorted(ref_cache["poses"].values(), key=lambda q: float(np.linalg.norm(q.center[:2] - C[:2])))[:k]
+        out = []
+        for q in refs:
+            out.append(Pose.from_center(q.R, C))
+            out.append(Pose.from_center(q.R, np.array([C[0], C[1], q.center[2]])))
+        return out
+
+    def solo_block(seq: str) -> pycolmap.Reconstruction | None:
+        """A sequence whose SfM made no model: an empty block holding its camera (gtkit.queries'
+        resolution: the reference block's calibration of the same camera, else EXIF), to which its
+        photos are added one by one as they are resected from automatic matches."""
+        from ..queries import query_cameras, query_photos
+
+        names = query_photos(project, seq)
+        if not names or not (P.stage(QUERIES_STAGE) / seq / "database.db").is_file():
+            return None
+        try:
+            cams = query_cameras(project, names)
+        except GtkitError:
+            return None
+        rec = pycolmap.Reconstruction()
+        c = cams[names[0]].camera.to_pycolmap()
+        c.camera_id = 1
+        rec.add_camera_with_trivial_rig(c)
+        return rec
+
     def match_reference(seq: str):
         """A left-out photo of ``seq`` resected from automatic matches to the reference points."""
         def match(name: str, qrec: pycolmap.Reconstruction):
@@ -864,8 +901,10 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             k = order.index(name)
             near = [Pose.from_pycolmap(qrec.find_image_with_name(n).cam_from_world())
                     for n in sorted((n for n in order if n != name), key=lambda m: abs(order.index(m) - k))[:2]]
+            by_reference = reference_neighbour_priors(name)
+            priors = priors + by_reference
             if not priors and not near:
-                return None, 0, "no GPS and gimbal angles to guide matching"
+                return None, 0, "no GPS to guide matching"
             feats = photo_features(P.stage(QUERIES_STAGE) / seq / "database.db", name)
             if feats is None:
                 return None, 0, "no features in its sequence's database"
@@ -874,7 +913,8 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             pose, rows, _ = max(found, key=lambda f: len(f[1])) if found else (None, [], [])
             if pose is None and settings.bootstrap.enabled:   # a wider search around its own and its neighbours' poses
                 found = [(g, match_photo_wide(g, cam, *feats, reference_points(), settings.cross,
-                                              settings.bootstrap.radius_px)) for g in priors[:1] + near]
+                                              settings.bootstrap.radius_px))
+                         for g in priors[:1] + near + [q for q in by_reference if q is not priors[0]]]
                 found = [f for g, f in found if f[0] is not None
                          and np.linalg.norm(f[0].center - g.center) <= settings.bootstrap.max_offset_m]
                 if found:
@@ -939,7 +979,29 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
 
     for seq, d in seq_dirs.items():
         if not d.is_dir():
-            seq_report[seq] = {"status": "error", "error": "no query-block model (run `gtkit sfm DIR --block queries`)"}
+            # its SfM made no model (e.g. photos held out of a flight, too far apart to match each
+            # other): each photo on its own, resected from automatic matches to the reference points
+            qrec = solo_block(seq) if (d.parent / "block.json").is_file() else None
+            res = resect_sequence(seq, qrec, d.parent / "block.json", P.images, tiepoints,
+                                  lambda obs: _place(obs, ref_cache["poses"], ref_cache["cams"], ref_rec,
+                                                     settings.tie_max_px)[0], settings.tie_max_px,
+                                  match_reference(seq)) if qrec is not None else {}
+            done = {n: r for n, r in res.items() if r["resected"]}
+            if not done:
+                why = ("no query-block model (run `gtkit sfm DIR --block queries`)" if qrec is None else
+                       "its SfM made no model and none of its photos matched the reference points on its own"
+                       + (f" ({next(iter(res.values())).get('auto_reason')})" if res else ""))
+                seq_report[seq] = {"status": "error", "error": why, "needs_clicks": qrec is not None,
+                                   **({"left_out_by_sfm": res} if res else {})}
+                log.error("sequence %s not registered: %s", seq, why)
+                continue
+            blocks[seq], statuses[seq] = qrec, []
+            resected.update(done)
+            seq_report[seq] = {"status": "registered", "registered_by": "single photos (its SfM made no model)",
+                               "scale": 1.0, "n_tiepoints": 0, "n_sim3_inliers": 0, "sim3_rmse_m": None,
+                               "left_out_by_sfm": res}
+            log.info("sequence %s: no SfM model; %d of %d photos resected one by one from automatic matches",
+                     seq, len(done), len(res))
             continue
         qrec = pycolmap.Reconstruction(d)
         n_clicked = sum(1 for tp in tiepoints if tp.in_block(f"queries/{seq}/"))
