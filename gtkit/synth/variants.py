@@ -162,8 +162,8 @@ def apply_variant(root: str | Path, name: str, seed: int = 0) -> None:
     """Turn the sample project at ``root`` into the variant ``name`` (see the module doc). ``seed``
     draws the GPS errors of the GPS variants (they are written to ``truth/gps_errors_<name>.json``)."""
     root = Path(root)
-    refs = sorted((root / "images" / "reference").glob("*.jpg"))
-    queries = sorted((root / "images" / "queries").glob("*/*.jpg"))
+    refs = sorted(p for p in (root / "images" / "reference").glob("*") if p.suffix.lower() in (".jpg", ".jpeg"))
+    queries = sorted(p for p in (root / "images" / "queries").glob("*/*") if p.suffix.lower() in (".jpg", ".jpeg"))
     if name == "no-gcps":
         (root / "gcp_list.txt").unlink(missing_ok=True)
     elif name == "no-attitude":
