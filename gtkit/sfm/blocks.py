@@ -657,7 +657,7 @@ def run_queries(project: Project | str | Path, settings: SfmSettings | None = No
     root = P.stage(QUERIES_STAGE)
     result = {}
     for seq in seqs:
-        names = list_images(P.query_images / seq, P.images, settings.query_pattern)
+        names = list_images(P.query_images / seq, P.images, settings.query_pattern)  # the same list as gtkit.queries.query_photos
         out = root / seq
         if not names:
             result[seq] = {"block": seq, "error": f"no photos matching {settings.query_pattern}", "n_images": 0}

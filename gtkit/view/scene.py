@@ -146,7 +146,9 @@ def load_scene(project: Project | str | Path, settings: ViewSettings | None = No
     if not refs:
         refs = prior_poses(project, ref_names)
     out.reference = {n: (p, out.cameras.get(n)) for n, p in refs.items()}
-    q_names = sorted(str(f.relative_to(P.images)) for f in P.query_images.rglob("*_W.*")) if P.query_images.is_dir() else []
+    from ..queries import query_photos
+
+    q_names = query_photos(project)   # the project's query photos ([sfm] query_pattern)
     priors = prior_poses(project, q_names)
     kinds = {"prior": priors,
              "pseudo_gt": {n: p for n, p in _poses(P.stage("register") / "poses.txt").items() if n.startswith("queries/")},
