@@ -912,13 +912,19 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             found = [match_photo(p, cam, *feats, reference_points(), settings.cross) for p in priors]
             pose, rows, _ = max(found, key=lambda f: len(f[1])) if found else (None, [], [])
             if pose is None and settings.bootstrap.enabled:   # a wider search around its own and its neighbours' poses
-                found = [(g, match_photo_wide(g, cam, *feats, reference_points(), settings.cross,
-                                              settings.bootstrap.radius_px))
-                         for g in priors[:1] + near + [q for q in by_reference if q is not priors[0]]]
-                found = [f for g, f in found if f[0] is not None
-                         and np.linalg.norm(f[0].center - g.center) <= settings.bootstrap.max_offset_m]
-                if found:
-                    pose, rows, _ = max(found, key=lambda f: len(f[1]))
+                guides = priors[:1] + near + [q for q in by_reference if q is not priors[0]]
+                # then wider still, at last over the whole image: a low photo under consumer GPS and
+                # without attitude is hundreds of pixels off, or turned, from its guides (Brighton at
+                # 35 m with ~10 m GPS: found only with the whole image)
+                r0 = settings.bootstrap.radius_px
+                for radius in (r0, 4 * r0, max(cam.width, cam.height)):
+                    found = [(g, match_photo_wide(g, cam, *feats, reference_points(), settings.cross, radius))
+                             for g in guides]
+                    found = [f for g, f in found if f[0] is not None
+                             and np.linalg.norm(f[0].center - g.center) <= settings.bootstrap.max_offset_m]
+                    if found:
+                        pose, rows, _ = max(found, key=lambda f: len(f[1]))
+                        break
             if pose is None:
                 return None, 0, (f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
                                  "points around its metadata pose" + (" or its neighbours' poses" if near else ""))
