@@ -235,7 +235,7 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
         if choice == "free" and free is None:
             raise RegistrationError(free_error or "no fit")
         if choice == "gravity":
-            r3 = np.linalg.norm(sim3_apply(grav.sim, np.array(src)) - np.array(tgt), axis=1)
+            r3 = np.hypot(grav.residuals_h, grav.residuals_v)   # after the altitudes' drift
             fit = Sim3Fit(grav.sim, grav.inliers, r3, float(np.sqrt(np.mean(r3[grav.inliers] ** 2))), None)
             fit_record = {**grav.record, "why": why}
             gps_quality = grav.record

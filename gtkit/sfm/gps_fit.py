@@ -193,6 +193,10 @@ def gravity_held_fit(names: list[str], src: np.ndarray, tgt: np.ndarray, times: 
     sigma_v = max(_mad(res_v[sel]), floor_v / 3.0)
     inl_v = np.abs(res_v) <= max(floor_v, 3.0 * sigma_v)
     inl = inl_h & inl_v
+    if inl.sum() < max(3, 0.5 * n_h):
+        raise RegistrationError(
+            f"inconsistent altitudes: only {int(inl.sum())} of the {n_h} horizontally consistent GPS positions agree "
+            f"with one altitude offset{' and drift' if use_drift else ''} (scatter {sigma_v:.1f} m)")
     tau_mid = float(np.median(tau[inl])) if inl.any() else 0.5
     tz = float(np.median((dz - slope * (tau - tau_mid))[inl])) if inl.any() else icpt + slope * tau_mid
     # the whole transform: world = scale * Rz(heading) R0 src + (Re b, Im b, tz)
@@ -219,7 +223,7 @@ def gravity_held_fit(names: list[str], src: np.ndarray, tgt: np.ndarray, times: 
         # what the site can claim in absolute terms: a common GPS bias would not show in the
         # residuals, so the single-position scatter bounds it; heights also carry the drift's unknown zero
         "n_effective": round(float(n_eff), 1),
-        **claimed_accuracy(sigma_h_axis, float(sigma_v + abs(drift_m if use_drift else 0.0) / 2.0),
+        **claimed_accuracy(sigma_h_axis, float(sigma_v + abs(drift_m if use_drift else 0.0) / 2.0),  # heights: + half the drift
                            float(np.median(acc)) if np.any(acc > 0) else None),
     }
     return GpsFit(sim, inl, r_h, res_v_final, record)
