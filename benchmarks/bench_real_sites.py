@@ -97,8 +97,8 @@ def main(argv=None) -> int:
     work = a.work or Path(tempfile.mkdtemp(prefix="bench_real_sites_"))
     rows = []
     print("| variant | seed | registered | position err (m) | rotation err (deg) | tilt (deg) | heading (deg) | "
-          "horizontal / vertical err (m) | claimed (m) | GCP median (m) | check points (m) | fit | GPS kept | s | error |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "horizontal / vertical err (m) | claimed (m) | shape (m) | GCP median (m) | check points (m) | fit | GPS kept | s | error |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for v in a.variants:
         for s in a.seeds:
             r = run_one(a.preset, s, v, a.code.resolve(), work)
@@ -106,7 +106,7 @@ def main(argv=None) -> int:
             print(f"| {v} | {s} | {r.get('registered', '-')} | {fmt(r.get('pos_m'))} | "
                   f"{fmt(r.get('rot_deg'))} | {fmt(r.get('tilt_deg'))} | {fmt(r.get('heading_deg'), 2)} | "
                   f"{fmt(r.get('horizontal_m'), 2)} / {fmt(r.get('vertical_m'), 2)} | "
-                  f"{fmt(r.get('claim_h'), 1)} / {fmt(r.get('claim_v'), 1)} | {fmt(r.get('gcp_m'))} | {fmt(r.get('check_m'))} | {r.get('fit') or '-'} | {fmt(r.get('share'), 2)} | "
+                  f"{fmt(r.get('claim_h'), 1)} / {fmt(r.get('claim_v'), 1)} | {fmt(r.get('shape_m'))} | {fmt(r.get('gcp_m'))} | {fmt(r.get('check_m'))} | {r.get('fit') or '-'} | {fmt(r.get('share'), 2)} | "
                   f"{r['seconds']:.0f} | {(r.get('error') or '')[:120]} |", flush=True)
     print("\nmedian and worst over seeds:")
     print("| variant | position median / worst (m) | rotation median / worst (deg) | tilt median / worst (deg) | "

@@ -50,7 +50,14 @@ def block_frame_errors(estimated: dict[str, Pose], truth: dict[str, Pose]) -> di
         return None
     Q = Rotation.from_matrix([estimated[n].R.T @ truth[n].R for n in names]).mean().as_matrix()
     d = np.array([estimated[n].center - truth[n].center for n in names])
-    return {"tilt_deg": float(np.degrees(np.arccos(np.clip((Q @ np.array([0.0, 0.0, 1.0]))[2], -1, 1)))),
+    from ..sfm.similarity import umeyama
+
+    E = np.array([estimated[n].center for n in names])
+    T = np.array([truth[n].center for n in names])
+    sim = umeyama(E, T) if len(names) >= 3 else None
+    shape = float(np.median(np.linalg.norm(sim.apply(E) - T, axis=1))) if sim is not None else None
+    return {"shape_m": shape,   # camera centres after the best similarity to the truth: the block's own geometry
+            "tilt_deg": float(np.degrees(np.arccos(np.clip((Q @ np.array([0.0, 0.0, 1.0]))[2], -1, 1)))),
             "heading_deg": float(np.degrees(np.arctan2(Q[1, 0], Q[0, 0]))),
             "horizontal_m": float(np.median(np.linalg.norm(d[:, :2], axis=1))),
             "vertical_m": float(np.median(np.abs(d[:, 2])))}
