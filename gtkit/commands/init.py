@@ -49,5 +49,5 @@ def run(args):
         print(f"note: {n}")
     for m in r.missing:
         print(f"missing: {m}")
-    print(f"next: gtkit sfm {args.project} --block reference")
+    print(f"next: gtkit run {args.project}   (every stage; or stage by stage: gtkit sfm {args.project} --block reference)")
     return 0
