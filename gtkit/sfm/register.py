@@ -853,17 +853,23 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             ref_points["ref"] = ReferencePoints(ref_rec, ref_db, settings.cross.descriptors_per_point)
         return ref_points["ref"]
 
+    def gps_centre(name: str) -> np.ndarray | None:
+        """The photo's GPS position in the project frame (EXIF GPS + altitude), None without one."""
+        try:
+            m = read_photo_meta(P.images / name)
+        except GtkitError:
+            return None
+        if not m.has_gps or m.altitude is None:
+            return None
+        return project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
+
     def reference_neighbour_priors(name: str, k: int = 2) -> list[Pose]:
         """Poses at the photo's GPS position with the attitude of the nearest reference photos (a photo
         held out of the reference flight looks the way its neighbours do), at its GPS height and at
         theirs (consumer altitudes drift)."""
-        try:
-            m = read_photo_meta(P.images / name)
-        except GtkitError:
+        C = gps_centre(name)
+        if C is None:
             return []
-        if not m.has_gps or m.altitude is None:
-            return []
-        C = project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
         refs = sorted(ref_cache["poses"].values(), key=lambda q: float(np.linalg.norm(q.center[:2] - C[:2])))[:k]
         out = []
         for q in refs:
@@ -970,13 +976,9 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             return pose, ref.xyz[rows], kk
 
         def search(name):
-            try:
-                m = read_photo_meta(P.images / name)
-            except GtkitError:
+            C = gps_centre(name)
+            if C is None:
                 return []
-            if not m.has_gps or m.altitude is None:
-                return []
-            C = project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
             b = settings.bootstrap
             return [(f"GPS, attitude searched (yaw {yaw:.0f}, pitch {pitch:.0f})", Pose.from_dji(yaw, pitch, 0.0, C))
                     for pitch in b.search_pitches_deg for yaw in np.arange(0.0, 360.0, b.search_yaw_step_deg)]

@@ -67,19 +67,7 @@ def strip_metadata(path: Path, gps: bool, focal: bool) -> None:
         sub = exif.get_ifd(0x8769)
         for t in _FOCAL_TAGS:
             sub.pop(t, None)
-    out = bytearray(b"\xff\xd8")
-    for marker, payload in _segments(data):
-        if marker is None:
-            out += payload
-            break
-        if marker == 0xE1 and payload.startswith(b"Exif\x00\x00"):
-            payload = b"Exif\x00\x00" + exif.tobytes()[6:] if exif.tobytes().startswith(b"Exif") else b"Exif\x00\x00" + exif.tobytes()
-        elif marker == 0xE1 and gps and payload.startswith(b"http://ns.adobe.com/xap/1.0/"):
-            continue
-        out += bytes([0xFF, marker]) + struct.pack(">H", len(payload) + 2) + payload
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(bytes(out))
-    tmp.replace(path)
+    _write_segments(path, data, exif, "drop" if gps else "keep")
 
 
 def _rewrite(path: Path, gps: tuple[float, float, float] | None = None, xmp: str = "keep") -> None:
@@ -95,6 +83,12 @@ def _rewrite(path: Path, gps: tuple[float, float, float] | None = None, xmp: str
         g[1], g[2] = ("N" if lat >= 0 else "S"), _to_dms(lat)
         g[3], g[4] = ("E" if lon >= 0 else "W"), _to_dms(lon)
         g[5], g[6] = (b"\x00" if alt >= 0 else b"\x01"), Fraction(abs(alt)).limit_denominator(1000)
+    _write_segments(path, data, exif, xmp)
+
+
+def _write_segments(path: Path, data: bytes, exif, xmp: str) -> None:
+    """``path`` rewritten from the JPEG bytes ``data`` with the EXIF segment ``exif`` and its XMP
+    packet kept, dropped or replaced (``xmp``: keep | drop | the new packet's text); atomically."""
     out = bytearray(b"\xff\xd8")
     for marker, payload in _segments(data):
         if marker is None:
