@@ -33,6 +33,8 @@ def register(sub):
 
 
 def _print_reference(r: dict) -> None:
+    from ..sfm.reference_report import by_reason
+
     geo = r.get("georegistration", {})
     print(f"reference: {r['n_registered']}/{r['n_images']} registered in {r.get('n_models', 1)} model(s), "
           f"{r.get('n_points3D')} points, mean reprojection {r.get('mean_reproj_px', float('nan')):.2f} px")
@@ -61,8 +63,8 @@ def _print_reference(r: dict) -> None:
                                       if g["status"] == "ok" else g["reason"]))
     for gname, photos in (r.get("gcp_clicks_outside_block") or {}).items():
         print(f"  GCP {gname}: clicked in photos that are not reference photos: {', '.join(photos)}")
-    for n, why in r["unregistered"].items():
-        print(f"  not registered: {n}: {why}")
+    for why, names in by_reason(r["unregistered"]):
+        print(f"  not registered ({len(names)}): {why}: {', '.join(names)}")
 
 
 def run(args):
@@ -89,6 +91,8 @@ def run(args):
     if args.block == "reference":
         _print_reference(run_reference(project, s, force=args.force, executor=ex))
     else:
+        from ..sfm.reference_report import by_reason
+
         res = run_queries(project, s, force=args.force, executor=ex)
         bad = 0
         for seq, r in res.items():
@@ -97,6 +101,6 @@ def run(args):
                 print(f"{seq}: ERROR {r['error']}")
                 continue
             print(f"{seq}: {r['n_registered']}/{r['n_images']} registered, mean reprojection {r['mean_reproj_px']:.2f} px")
-            for n, why in r["unregistered"].items():
-                print(f"  not registered: {n}: {why}")
+            for why, names in by_reason(r["unregistered"]):
+                print(f"  not registered ({len(names)}): {why}: {', '.join(names)}")
         return 1 if bad else 0

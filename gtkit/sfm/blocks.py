@@ -578,7 +578,10 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
             continue
         if n in in_other:
             i = in_other[n]
-            unregistered[n] = f"in model {i['model']} ({i['n_registered']} photos), {i['reason']}"
+            # the model's own reason is stated once, with the models; its photos point to it
+            unregistered[n] = (f"in model {i['model']} ({i['n_registered']} photos), "
+                               + ("not placed in the world (why: see model " + str(i["model"]) + ")"
+                                  if i["reason"].startswith("not placed in the world") else i["reason"]))
         else:
             unregistered[n] = failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}),
                                              m.min_num_inliers)

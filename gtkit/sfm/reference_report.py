@@ -26,6 +26,14 @@ def reference_report(summary: dict) -> dict:
             "poses": "work/sfm_reference/poses.txt", "frame": summary.get("frame")}
 
 
+def by_reason(unregistered: dict[str, str]) -> list[tuple[str, list[str]]]:
+    """Photos left out, grouped by their reason (each reason stated once), most photos first."""
+    groups: dict[str, list[str]] = {}
+    for n, why in unregistered.items():
+        groups.setdefault(why, []).append(n)
+    return sorted(((w, sorted(ns)) for w, ns in groups.items()), key=lambda g: (-len(g[1]), g[0]))
+
+
 def _f(v, nd=3):
     return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
 
@@ -105,7 +113,8 @@ def write_reference_report(paths: Paths, summary: dict) -> dict:
         lines += ["", "## Models", ""] + [f"- model {m['model']}: {m['n_registered']} photos, {m['n_points3D']} points, "
                                           + ("kept" if m.get("kept") else m.get("reason", "")) for m in rep["models"]]
     if rep["unregistered"]:
-        lines += ["", "## Photos not in the block", ""] + [f"- `{n}`: {w}" for n, w in rep["unregistered"].items()]
+        lines += ["", "## Photos not in the block", ""] + [
+            f"- {why}: " + ", ".join(f"`{n}`" for n in names) for why, names in by_reason(rep["unregistered"])]
     lines += ["", "Seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in rep["seconds"].items())]
     write_text(paths.reports / "reference.md", "\n".join(lines) + "\n")
     return rep
