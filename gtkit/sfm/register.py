@@ -46,7 +46,7 @@ from ..io.atomic import write_json
 from ..io.poses import write_covariances, write_intrinsics, write_poses
 from ..io.tiepoints import TiePoint, read_tiepoints
 from ..pose import Pose
-from ..project import PROJECT_FILE, Project, file_fingerprint, mark_stage_done, stage_done
+from ..project import PROJECT_FILE, Project, file_fingerprint, mark_stage_done, stage_done, start_stage_clock
 from . import quiet_colmap
 from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
@@ -840,6 +840,7 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     if not force and stage_done(out, settings, inputs):
         import json
         return json.loads((out / "registration.json").read_text())
+    start_stage_clock(out)   # (also under --force): its log goes to work/register/log.txt
     t0 = time.time()
     tiepoints = read_tiepoints(P.tiepoints) if P.tiepoints.is_file() else []   # no file: no clicks
     ref_rec = pycolmap.Reconstruction(ref_dir)
