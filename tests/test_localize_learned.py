@@ -194,7 +194,9 @@ def test_localize_small_sample_queries_with_xfeat(small_sample, tmp_path):
 
     root = tmp_path / "small"
     shutil.copytree(small_sample, root, ignore=shutil.ignore_patterns("work", "exports", "reports"))
-    database.run(root, database.RenderDbSettings(heights=(150.0,), intervals=(75.0,), paper_pitches=(0.0, 45.0)),
+    # the paper's layout (cameras on the grid points, 60 deg), as this test was measured with
+    database.run(root, database.RenderDbSettings(heights=(150.0,), intervals=(75.0,), paper_pitches=(0.0, 45.0),
+                                                 hfov_deg=60.0, anchor="camera"),
                  ExecutorSettings("serial"))
     s = localize.settings_for("xfeat", localize.LocalizeSettings(query_subset="queries/seq1/000[123]_W.jpg"))
     out = localize.run(root, s, ablation="xfeat", executor=ExecutorSettings("serial"))

@@ -109,7 +109,14 @@ def test_too_few_tiepoints_fails_that_sequence_only(small, tmp_path):
     tps = read_tiepoints(dst / "tiepoints.json")
     seq3 = [t for t in tps if any(o.image.startswith("queries/seq3/") and "_W" in o.image for o in t.observations)]
     write_tiepoints(dst / "tiepoints.json", [t for t in tps if t not in seq3] + seq3[:2])
+    # too few clicks: the sequence is placed by its photos' automatic matches instead, and says why
     res = register.run(dst)
+    s3 = res["sequences"]["seq3"]
+    assert s3["status"] == "registered" and s3["registered_by"] == "automatic matches" and "only" in s3["clicks"], s3
+    # with that turned off, only that sequence fails, with the reason
+    s = register.RegisterSettings()
+    s.bootstrap.enabled = False
+    res = register.run(dst, s, force=True)
     assert res["sequences"]["seq3"]["status"] == "error" and "only" in res["sequences"]["seq3"]["error"]
     assert res["sequences"]["seq1"]["status"] == res["sequences"]["seq2"]["status"] == "registered"
 

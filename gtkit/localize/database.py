@@ -105,7 +105,9 @@ def view_record(settings: dict, inputs: dict) -> dict:
 
 
 def db_camera(s: RenderDbSettings) -> Camera:
-    return Camera.from_hfov(s.width, s.height, s.hfov_deg)
+    """The virtual camera of the database views (the paper's 60 deg where the field of view is not
+    resolved yet: it follows the queries once :func:`resolve_grid` ran)."""
+    return Camera.from_hfov(s.width, s.height, s.hfov_deg if s.hfov_deg is not None else PAPER_GRID["hfov_deg"])
 
 
 # --- part selectors: which uploaded parts a view draws (None = all) ---------------------------
