@@ -384,24 +384,19 @@ def resolve_grid(project: Project, s: RenderDbSettings, renderer, extent, ground
         return s, {"source": src}
     fl = query_flight(project, renderer, extent, ground_z)
     ch: dict = {}
-    if s.hfov_deg is None:
-        if fl["hfov_deg"]:
-            ch["hfov_deg"] = grid_hfov(fl["hfov_deg"].values())
-            src["hfov_deg"] = f"queries ({len(fl['hfov_deg'])} photos' intrinsics, median)"
+    # each grid value the settings leave open: (its flight figures, how they make it, what they are, else why not)
+    follows = {"hfov_deg": ("hfov_deg", grid_hfov, "photos' intrinsics, median", "no query intrinsics"),
+               "heights": ("agl_m", lambda v: height_levels(list(v)), "photos' GPS altitude above the model's ground",
+                           "no query GPS altitude"),
+               "paper_pitches": ("off_nadir_deg", lambda v: pitch_levels(list(v)), "photos' gimbal pitch",
+                                 "no gimbal angles")}
+    for field, (key, make, what, missing) in follows.items():
+        if getattr(s, field) is not None:
+            continue
+        if fl[key]:
+            ch[field], src[field] = make(fl[key].values()), f"queries ({len(fl[key])} {what})"
         else:
-            ch["hfov_deg"], src["hfov_deg"] = PAPER_GRID["hfov_deg"], "default (no query intrinsics)"
-    if s.heights is None:
-        if fl["agl_m"]:
-            ch["heights"] = height_levels(list(fl["agl_m"].values()))
-            src["heights"] = f"queries ({len(fl['agl_m'])} photos' GPS altitude above the model's ground)"
-        else:
-            ch["heights"], src["heights"] = PAPER_GRID["heights"], "default (no query GPS altitude)"
-    if s.paper_pitches is None:
-        if fl["off_nadir_deg"]:
-            ch["paper_pitches"] = pitch_levels(list(fl["off_nadir_deg"].values()))
-            src["paper_pitches"] = f"queries ({len(fl['off_nadir_deg'])} photos' gimbal pitch)"
-        else:
-            ch["paper_pitches"], src["paper_pitches"] = PAPER_GRID["paper_pitches"], "default (no gimbal angles)"
+            ch[field], src[field] = PAPER_GRID[field], f"default ({missing})"
     heights = ch.get("heights", s.heights)
     if s.intervals is None:
         hfov = ch.get("hfov_deg", s.hfov_deg)
