@@ -94,9 +94,11 @@ def gps_positions(project: Project, names: list[str]) -> dict[str, np.ndarray]:
     return gps_positions_and_accuracy(project, names)[0]
 
 
-def gps_positions_and_accuracy(project: Project, names: list[str]) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+def gps_positions_and_accuracy(project: Project, names: list[str], metas: dict | None = None
+                               ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Camera positions (geo.txt first, else EXIF GPS + DJI altitude) and, where geo.txt states
-    one, each position's accuracy (metres, the larger of horizontal and vertical)."""
+    one, each position's accuracy (metres, the larger of horizontal and vertical). ``metas``: the
+    photos' metadata already read (:func:`photo_metas`); a photo missing there is read here."""
     P = project.paths
     geo = read_geo_txt(P.geo_txt, project.frame) if P.geo_txt.is_file() else {}
     out, acc = {}, {}
@@ -107,10 +109,16 @@ def gps_positions_and_accuracy(project: Project, names: list[str]) -> tuple[dict
             if g.accuracy and max(g.accuracy) > 0:
                 acc[n] = float(max(g.accuracy))
             continue
-        m = read_photo_meta(P.images / n, require=())
+        m = _meta(project, n, metas)
         if m.has_gps and m.altitude is not None:
             out[n] = project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
     return out, acc
+
+
+def _meta(project: Project, name: str, metas: dict | None):
+    """A photo's metadata from ``metas`` where read already, else read now (an unreadable photo: GtkitError)."""
+    m = (metas or {}).get(name)
+    return m if m is not None else read_photo_meta(project.paths.images / name, require=())
 
 
 def photo_metas(project: Project, names: list[str]) -> dict:
@@ -125,7 +133,7 @@ def photo_metas(project: Project, names: list[str]) -> dict:
 
 
 def pairing_positions(project: Project, names: list[str], centres: dict[str, np.ndarray],
-                      max_range_factor: float = 3.0) -> dict[str, np.ndarray]:
+                      max_range_factor: float = 3.0, metas: dict | None = None) -> dict[str, np.ndarray]:
     """Where each photo looks: the camera centre moved along the optical axis (DJI gimbal angles)
     to the ground (height above ground from DJI RelativeAltitude). Oblique photos that see the
     same ground are then neighbours for spatial pairing even when taken far apart. Photos without
@@ -136,7 +144,7 @@ def pairing_positions(project: Project, names: list[str], centres: dict[str, np.
     for n in names:
         if n not in centres:
             continue
-        m = read_photo_meta(project.paths.images / n, require=())
+        m = _meta(project, n, metas)
         if not m.has_gimbal or m.rel_alt is None or m.rel_alt <= 0:
             continue
         d = dji_to_rotation(m.gimbal_yaw, m.gimbal_pitch, m.gimbal_roll).T @ np.array([0.0, 0.0, 1.0])
@@ -421,8 +429,9 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     P = project.paths
     out.mkdir(parents=True, exist_ok=True)
     t0, c0 = time.time(), cpu_seconds()
-    positions, accuracy = gps_positions_and_accuracy(project, names)
-    look = pairing_positions(project, names, positions) if settings.pair_by_footprint else positions
+    metas = photo_metas(project, names)   # each photo's header read once: positions, pairing, georegistration
+    positions, accuracy = gps_positions_and_accuracy(project, names, metas)
+    look = pairing_positions(project, names, positions, metas=metas) if settings.pair_by_footprint else positions
     groups = camera_groups(project, names, positions,
                            reference_calibrations(project, names) if kind == "sequence" else None)
     db = out / "database.db"
@@ -531,7 +540,6 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         if gcps and kind == "reference":
             summary["gcp_clicks_outside_block"] = check_gcp_clicks(gcps, names)
         geo_models = []
-        metas = photo_metas(project, names)
         for k, r in enumerate(models):
             if k in duplicate:
                 continue
