@@ -169,12 +169,11 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
     """Transform ``rec`` in place into the project's local world frame; returns a report dict.
     ``gps_accuracy``: {photo: stated 1-sigma accuracy in metres} (geo.txt): its threshold's floor.
     ``metas``: {photo: PhotoMeta} (gimbal attitude, time, relative altitude) for the GPS-alone fit and
-    the plausibility check; None skips both (the free Sim(3) as before)."""
+    the plausibility check; None: the free Sim(3) as before, checked without attitude."""
     if settings.tilt_from not in ("auto", "gps", "gravity"):
         raise RegistrationError(f'[sfm.georegister] tilt_from = "{settings.tilt_from}": expected auto, gps or gravity')
     poses = model_poses(rec)
     gps_accuracy = gps_accuracy or {}
-    up = block_up(rec, metas) if metas is not None else None
     checks = {g.name for g in gcps if g.check} | set(settings.checkpoints)
     # per point: threshold cap, floor, adaptive. Without a stated accuracy GPS keeps the fixed
     # gps_inlier_m and GCPs adapt to their scatter (<= gcp_max_inlier_m); with one, the threshold
@@ -215,6 +214,7 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
     fit_record = {"mode": "free", "why": "GCPs in the fit" if n_gps < len(src) else "no photo metadata"}
     gps_quality = None
     if n_gps == len(src) and metas is not None:
+        up = block_up(rec, metas)   # in the block's own frame, before it moves
         # GPS alone: a free Sim(3) only where the positions hold the tilt; else gravity holds it
         free, free_error = None, None
         try:
