@@ -90,7 +90,7 @@ def test_an_unknown_mapper_is_one_clear_error_before_any_work(tiny_sample, tmp_p
     proj = Project.load(root)
     proj.config.setdefault("sfm", {})["mapper"] = "glomap"
     proj.save()
-    with pytest.raises(GtkitError, match="unknown sfm.mapper 'glomap' \\(choose from incremental, global, auto\\)"):
+    with pytest.raises(GtkitError, match="unknown sfm.mapper 'glomap' \\(choose from incremental, global, seeded, auto\\)"):
         run_reference(root)
     assert not (root / "work/sfm_reference/database.db").exists()
 

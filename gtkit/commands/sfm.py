@@ -21,8 +21,10 @@ def register(sub):
     p.add_argument("--checkpoints", default=None, metavar="NAMES",
                    help="comma-separated GCP names used only as check points")
     p.add_argument("--georegister-with", choices=["gps", "gcp", "gps+gcp"], default=None)
-    p.add_argument("--mapper", choices=["incremental", "global", "auto"], default=None,
-                   help="incremental (COLMAP), global (GLOMAP) or auto (default: by block size, see sfm.blocks)")
+    p.add_argument("--mapper", choices=["incremental", "global", "seeded", "auto"], default=None,
+                   help="incremental (COLMAP), global (GLOMAP), seeded (reference block: photos start at their "
+                        "RTK position + gimbal attitude, see sfm.seeded) or auto (default: seeded where the photos "
+                        "allow it, else incremental)")
     p.add_argument("--executor", choices=("serial", "local", "dask"), default=None,
                    help="run feature extraction and matching as tasks there (default: in this process)")
     p.add_argument("--workers", type=int, default=0, help="worker processes for --executor (0 = min(2, CPUs))")

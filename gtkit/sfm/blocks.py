@@ -57,8 +57,10 @@ class SfmSettings:
     gps_prior_sigma_m: float = 5.0    # sigma of the CARTESIAN pose priors (geo.txt accuracy where stated)
     init_min_tri_angle_deg: float = 4.0  # mapper's initial pair (COLMAP: 16; short UAV baselines need less)
     min_tri_angle_deg: float = 1.0       # triangulation/filtering (COLMAP: 1.5)
-    # incremental (COLMAP) | global (GLOMAP: rotation averaging + global positioning + BA) | auto:
-    # global from GLOBAL_MAPPER_MIN_PHOTOS photos up (see there: never measured to win yet)
+    # incremental (COLMAP) | global (GLOMAP: rotation averaging + global positioning + BA) | seeded
+    # (reference block: each photo starts at its RTK position + gimbal attitude, gtkit.sfm.seeded) | auto:
+    # seeded where the reference photos allow it (choose_mapper), else global from
+    # GLOBAL_MAPPER_MIN_PHOTOS photos up (see there: never measured to win yet), else incremental
     mapper: str = "auto"
     # the incremental mapper's BA schedule. COLMAP's defaults (global BA each time the model grew by
     # 1.1x in photos or points, 5 rounds of BA + filtering + retriangulation in each, 2 in the local
@@ -220,7 +222,7 @@ def _camera_ids(db: Path, groups: list[CameraGroup]) -> tuple[set[int], set[int]
     return set(cams), calibrated, no_prior
 
 
-MAPPERS = ("incremental", "global", "auto")
+MAPPERS = ("incremental", "global", "seeded", "auto")
 # ``mapper = "auto"`` uses GLOMAP from this many photos up; None: never. Measured (README, "Scale"),
 # same feature database per seed, small preset (120 photos), seeds 1 and 2: both registered 120/120;
 # mapping CPU 104 / 103 s global vs 54 / 68 s incremental; camera centres vs truth median 0.020 /
@@ -231,21 +233,28 @@ MAPPERS = ("incremental", "global", "auto")
 GLOBAL_MAPPER_MIN_PHOTOS: int | None = None
 
 
-def choose_mapper(mapper: str, n_images: int) -> str:
-    """The mapper a block of ``n_images`` photos gets (``auto`` resolved)."""
+def choose_mapper(mapper: str, n_images: int, seedable: tuple[bool, str] | None = None) -> tuple[str, str]:
+    """(the mapper a block of ``n_images`` photos gets, why: one line). ``seedable``: what
+    :func:`gtkit.sfm.seeded.seeding_check` says of a reference block (None: not a candidate).
+    ``auto``: seeded where every photo carries an RTK-grade position and a gimbal attitude (the seeding
+    measures the rest and may still hand the block to the incremental mapper), else incremental."""
     if mapper not in MAPPERS:
         raise GtkitError(f"unknown sfm.mapper {mapper!r} (choose from {', '.join(MAPPERS)})")
     if mapper != "auto":
-        return mapper
-    return "global" if GLOBAL_MAPPER_MIN_PHOTOS is not None and n_images >= GLOBAL_MAPPER_MIN_PHOTOS else "incremental"
+        if mapper == "seeded" and seedable is None:
+            return "incremental", "sfm.mapper = seeded, but only the reference block is seeded"
+        if mapper == "seeded" and not seedable[0]:
+            return "incremental", f"sfm.mapper = seeded, but the photos cannot seed the block: {seedable[1]}"
+        return mapper, "set by sfm.mapper"
+    if seedable is not None and seedable[0]:
+        return "seeded", f"auto: {seedable[1]}"
+    if GLOBAL_MAPPER_MIN_PHOTOS is not None and n_images >= GLOBAL_MAPPER_MIN_PHOTOS:
+        return "global", f"auto: {n_images} photos (global from {GLOBAL_MAPPER_MIN_PHOTOS})"
+    return "incremental", "auto: " + (f"not seeded: {seedable[1]}" if seedable is not None else "not a seedable block")
 
 
-def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: dict, n_images: int,
-         label: str) -> list[pycolmap.Reconstruction]:
-    """Incremental or global mapping (``settings.mapper``); every model found, largest first.
-    Progress: photos registered so far (the global mapper reports once, at the end)."""
-    if choose_mapper(settings.mapper, n_images) == "global":
-        return _map_global(db, image_root, out, settings, policy, n_images, label)
+def incremental_options(settings: SfmSettings, policy: dict) -> pycolmap.IncrementalPipelineOptions:
+    """The incremental mapper's options (also the seeded mapper's triangulation, filtering and absolute pose)."""
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = settings.num_threads
     opts.random_seed = 0
@@ -269,13 +278,39 @@ def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: d
     opts.mapper.init_min_tri_angle = settings.init_min_tri_angle_deg
     opts.mapper.filter_min_tri_angle = settings.min_tri_angle_deg
     opts.triangulation.min_angle = settings.min_tri_angle_deg
+    return opts
+
+
+def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: dict, n_images: int,
+         label: str, priors: dict | None = None) -> tuple[list[pycolmap.Reconstruction], dict]:
+    """Incremental, global or seeded mapping (``settings.mapper``, :func:`choose_mapper`); every model
+    found, largest first, and what ran and why (block.json's ``mapper``). ``priors``: the reference
+    block's {"names", "positions", "accuracy", "metas"} (seeded candidates only). Progress: photos
+    registered so far (the global and seeded mappers report once, at the end)."""
+    from .seeded import seeded_mapping, seeding_check
+
+    seedable = (seeding_check(priors["names"], priors["positions"], priors["accuracy"], priors["metas"])
+                if priors is not None else None)
+    name, why = choose_mapper(settings.mapper, n_images, seedable)
+    record = {"name": name, "why": why}
+    if name == "global":
+        return _map_global(db, image_root, out, settings, policy, n_images, label), record
+    opts = incremental_options(settings, policy)
+    if name == "seeded":
+        s = seeded_mapping(db, priors["names"], priors["positions"], priors["accuracy"], priors["metas"], opts,
+                           num_threads=settings.num_threads)
+        record["seeded"] = s.record
+        if s.rec is not None:
+            record["prior_outliers"] = sorted(s.outliers)
+            return [s.rec], record
+        record.update(name="incremental", why=f"seeding refused: {s.record['fallback']}")
     out.mkdir(parents=True, exist_ok=True)
     bar = progress_bar(n_images, f"{label}: photos registered")
     models = pycolmap.incremental_mapping(db, image_root, out, options=opts,
                                           initial_image_pair_callback=lambda: bar.update(2),
                                           next_image_callback=lambda: bar.update(1))
     bar.close()
-    return sorted(models.values(), key=lambda r: -r.num_reg_images())
+    return sorted(models.values(), key=lambda r: -r.num_reg_images()), record
 
 
 def _map_global(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: dict, n_images: int,
@@ -486,7 +521,9 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     t_match, c_match = _step(label, f"matching ({n_pairs} pairs)", t_feat), cpu_seconds()
     all_ids, calibrated, no_prior = _camera_ids(db, groups)
     policy = intrinsics_policy(settings, calibrated, no_prior, all_ids, len(positions))
-    models = _map(db, P.images, out / "mapper", settings, policy, len(names), label)
+    priors = ({"names": names, "positions": positions, "accuracy": accuracy, "metas": metas}
+              if kind == "reference" else None)
+    models, mapper_record = _map(db, P.images, out / "mapper", settings, policy, len(names), label, priors)
     t_map = _step(label, f"mapping ({sum(r.num_reg_images() for r in models)} photos in {len(models)} models)", t_match)
     c_map = cpu_seconds()
     summary = {"block": label, "reused_database": reuse, "n_images": len(names), "pairings": pairs_used,
@@ -497,7 +534,10 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                                      "gps_priors_in_ba": policy["gps_priors_in_ba"],
                                      "fixed_cameras": sorted(policy["constant_cameras"]),
                                      "self_calibrated_cameras": sorted(policy["self_calibrate"])}}
-    summary["mapper"] = choose_mapper(settings.mapper, len(names))
+    summary["mapper"] = mapper_record["name"]
+    summary["mapper_why"] = mapper_record["why"]
+    if "seeded" in mapper_record:
+        summary["seeded"] = mapper_record["seeded"]
     if not models:
         diag = image_diagnostics(db)
         summary.update(n_registered=0, n_models=0, models=[], unregistered={
@@ -567,7 +607,9 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         summary["held_by_positions"] = {"applied": False, "reason": "positions too coarse to hold the block's shape "
                                         "(its tilt is held by gravity)"}
     elif kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3:
-        summary["held_by_positions"] = hold_by_positions(rec, positions, set(geo.get("outliers", [])), accuracy,
+        # a photo the seeded mapper found off its prior stays out of the priors, even inside the Sim(3)'s threshold
+        summary["held_by_positions"] = hold_by_positions(rec, positions, set(geo.get("outliers", []))
+                                                         | set(mapper_record.get("prior_outliers", [])), accuracy,
                                                          num_threads=settings.num_threads)
     for k, info in enumerate(models_info):
         info["kept"] = k in kept
@@ -590,6 +632,8 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
             unregistered[n] = (f"in model {i['model']} ({i['n_registered']} photos), "
                                + ("not placed in the world (why: see model " + str(i["model"]) + ")"
                                   if i["reason"].startswith("not placed in the world") else i["reason"]))
+        elif n in summary.get("seeded", {}).get("not_registered", {}):
+            unregistered[n] = "its prior pose does not fit the block: " + summary["seeded"]["not_registered"][n]
         else:
             unregistered[n] = failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}),
                                              m.min_num_inliers)

@@ -15,6 +15,7 @@ def reference_report(summary: dict) -> dict:
             "n_models": summary.get("n_models", 0), "mean_reproj_px": summary.get("mean_reproj_px"),
             "n_points3D": summary.get("n_points3D"), "pairings": summary.get("pairings"),
             "n_pairs": summary.get("n_pairs"), "intrinsics_policy": summary.get("intrinsics_policy"),
+            "mapper": summary.get("mapper"), "mapper_why": summary.get("mapper_why"), "seeded": summary.get("seeded"),
             "intrinsics": summary.get("intrinsics"),
             "georegistration": {**{k: geo.get(k) for k in GEO_KEYS if k in geo},
                                 **({"rmse_m": geo["rmse_inliers_m"]} if "rmse_inliers_m" in geo else {})},
@@ -68,6 +69,20 @@ def _fit_lines(fit: dict, q: dict | None, plaus: dict | None) -> list[str]:
     return out
 
 
+def _seeded_line(seeded: dict | None) -> str:
+    """What the seeded mapper did with the photos' priors, after the mapper line ('' when it did not run)."""
+    if not seeded or "fallback" in seeded:
+        return ""
+    n_off = len(seeded.get("misfits", {})) + len(seeded.get("not_registered", {}))
+    return (f"; {seeded['n_seeded'] - n_off} photos at their prior pose, refined"
+            + (f", {len(seeded['misfits'])} placed by their matches away from a prior that does not fit ("
+               + ", ".join(f"`{n}`" for n in sorted(seeded["misfits"])[:5]) + (", ..." if len(seeded["misfits"]) > 5 else "")
+               + ")" if seeded.get("misfits") else "")
+            + (f", {len(seeded['placed_by_matches'])} without a prior placed by their matches"
+               if seeded.get("placed_by_matches") else "")
+            + f"; positions scatter {_f(seeded.get('position_scatter_m'))} m about the block")
+
+
 def write_reference_report(paths: Paths, summary: dict) -> dict:
     rep = reference_report(summary)
     write_json(paths.reports / "reference.json", rep)
@@ -76,6 +91,8 @@ def write_reference_report(paths: Paths, summary: dict) -> dict:
              f"- photos registered: **{rep['n_registered']} / {rep['n_images']}** in {rep['n_models']} model(s); "
              f"{_f(rep['n_points3D'])} 3D points; mean reprojection {_f(rep['mean_reproj_px'], 2)} px",
              f"- pairs: {_f(rep['n_pairs'])} ({' + '.join(rep['pairings'] or [])})",
+             f"- mapper: {rep['mapper'] or '–'} ({rep['mapper_why'] or 'no reason recorded'})"
+             + _seeded_line(rep["seeded"]),
              f"- frame: {rep['frame']}; poses in `{rep['poses']}`", "",
              "## Georegistration", ""]
     if "error" in g:

@@ -1,0 +1,229 @@
+"""The reference block seeded by what its photos already know (issue 34).
+
+UAVD4L-style reference flights carry an RTK position (centimetres) and the DJI gimbal attitude in
+every photo. Instead of growing the block photo by photo (``pycolmap.incremental_mapping``), each
+photo starts at its prior pose, the database's matches are triangulated with those poses, and a
+bundle adjustment with the positions as priors (gtkit.sfm.prior_ba) refines poses and points:
+
+1. **eligible** (:func:`seeding_check`): nearly every photo has a position and a gimbal attitude,
+   and no position's stated accuracy (geo.txt) is worse than ``MAX_PRIOR_ACCURACY_M``;
+2. **seed**: position from GPS / geo.txt in the project frame (the same positions the
+   georegistration uses), rotation from the gimbal angles (gtkit.conventions.dji_to_rotation);
+3. **triangulate** every match with the poses held, then a pose-prior BA with a loose position
+   sigma (``SEED_SIGMA_M``: the images set the block's shape, the positions its place);
+4. **misfits**: a photo whose prior does not fit (moved by the BA beyond ``MISFIT_SHIFT_M`` /
+   ``MISFIT_ROTATION_DEG``, too few or too bad observations) is taken out and registered as the
+   incremental mapper registers a photo (absolute pose from its matches to the block's points,
+   ``IncrementalMapper.register_next_image``), never left at its prior; its position then leaves
+   the priors. A photo without a prior is registered the same way;
+5. **measured**: where more than ``MAX_MISFIT_SHARE`` of the photos misfit, or the positions
+   scatter about the block by more than ``MAX_PRIOR_ACCURACY_M`` (metre-grade GPS that states
+   nothing), the whole block goes back to the incremental mapper, with that reason.
+
+The result is a block in the project frame; gtkit.sfm.blocks georegisters it (a Sim(3) near the
+identity), checks it for plausibility and holds it by its positions as it does any mapper's block.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ..conventions import dji_to_rotation, rotation_angle_deg, translation_from_center
+from .prior_ba import hold_by_positions
+
+log = logging.getLogger(__name__)
+
+# seeded only where the positions are this good (stated in geo.txt, or measured in step 5), metres
+MAX_PRIOR_ACCURACY_M = 0.5
+MIN_SEEDED_SHARE = 0.95        # of the block's photos with a position and a gimbal attitude
+SEED_SIGMA_M = 0.25            # position sigma in the seeding BA (a stated accuracy, where smaller)
+MISFIT_SHIFT_M = 1.0           # a photo the seeding BA moves farther than this from its prior misfits ...
+MISFIT_ROTATION_DEG = 3.0      # ... or turns farther than this from its gimbal attitude
+MISFIT_MIN_OBSERVATIONS = 30   # ... or that sees fewer of the block's points (or under a quarter of the median)
+MISFIT_REPROJ_PX = 3.0         # ... or whose median reprojection error is larger (and 3x the block's median)
+MAX_MISFIT_SHARE = 0.2         # more misfits than this: the whole block is mapped incrementally
+
+
+@dataclass
+class Seeded:
+    rec: pycolmap.Reconstruction | None
+    record: dict = field(default_factory=dict)   # block.json's "seeded": photos seeded, misfits, fallback, seconds
+    outliers: set[str] = field(default_factory=set)   # photos whose position left the priors
+
+
+def seeding_check(names: list[str], positions: dict[str, np.ndarray], accuracy: dict[str, float],
+                  metas: dict) -> tuple[bool, str]:
+    """Whether the block can be seeded by its photos' priors, and why (one line)."""
+    n = len(names)
+    with_pose = [x for x in names if x in positions and metas.get(x) is not None and metas[x].has_gimbal]
+    if not n or len(with_pose) < MIN_SEEDED_SHARE * n:
+        n_att = sum(1 for x in names if metas.get(x) is not None and metas[x].has_gimbal)
+        return False, (f"{len(with_pose)} of {n} photos have both a position and a gimbal attitude "
+                       f"({sum(1 for x in names if x in positions)} positions, {n_att} attitudes; "
+                       f"{100 * MIN_SEEDED_SHARE:.0f} % needed to seed)")
+    coarse = sorted(x for x in with_pose if accuracy.get(x, 0.0) > MAX_PRIOR_ACCURACY_M)
+    if coarse:
+        return False, (f"{len(coarse)} positions state an accuracy worse than {MAX_PRIOR_ACCURACY_M} m "
+                       f"(geo.txt; e.g. {coarse[0]}: {accuracy[coarse[0]]} m)")
+    stated = sum(1 for x in with_pose if x in accuracy)
+    return True, (f"{len(with_pose)} of {n} photos have a position and a gimbal attitude"
+                  + (f" ({stated} with a stated accuracy <= {MAX_PRIOR_ACCURACY_M} m)" if stated else
+                     f" (accuracy stated nowhere: measured while seeding, <= {MAX_PRIOR_ACCURACY_M} m needed)"))
+
+
+def prior_pose(position: np.ndarray, meta) -> pycolmap.Rigid3d:
+    """cam_from_world of a photo at ``position`` (project frame) with its gimbal attitude."""
+    R = dji_to_rotation(meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll)
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(R), translation_from_center(R, np.asarray(position, float)))
+
+
+def _image_figures(rec: pycolmap.Reconstruction) -> dict[int, tuple[int, int, float]]:
+    """{image id: (observations, those of points seen by 3 or more photos, median reprojection error px)}
+    of the posed images. A point seen by two photos fits any two poses that share its epipolar
+    plane (a prior moved along the flight line); one seen by three or more holds each of them."""
+    ids = np.array(list(rec.points3D.keys()), np.int64)
+    xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    tracks = np.array([p.track.length() for p in rec.points3D.values()], np.int64)
+    order = np.argsort(ids)
+    ids, xyz, tracks = ids[order], xyz[order], tracks[order]
+    out = {}
+    for iid, im in rec.images.items():
+        if not im.has_pose:
+            continue
+        obs = [(p.xy, p.point3D_id) for p in im.points2D if p.has_point3D()]
+        if not obs:
+            out[iid] = (0, 0, float("inf"))
+            continue
+        uv = np.array([o[0] for o in obs])
+        k = np.searchsorted(ids, np.array([o[1] for o in obs], np.int64))
+        T = im.cam_from_world()
+        Xc = xyz[k] @ T.rotation.matrix().T + T.translation
+        proj = rec.cameras[im.camera_id].img_from_cam(Xc, check_cheirality=False)
+        out[iid] = (len(obs), int((tracks[k] >= 3).sum()), float(np.median(np.linalg.norm(proj - uv, axis=1))))
+    return out
+
+
+def _suspects(rec, seeds: dict[int, pycolmap.Rigid3d]) -> dict[int, str]:
+    """{image id: why its prior may not fit} after the seeding BA (checked then by its matches)."""
+    fig = _image_figures(rec)
+    n_med = float(np.median([f[1] for f in fig.values()])) if fig else 0.0
+    e_med = float(np.median([f[2] for f in fig.values() if np.isfinite(f[2])] or [0.0]))
+    out = {}
+    for iid, prior in seeds.items():
+        im = rec.images[iid]
+        n_obs, n_multi, err = fig.get(iid, (0, 0, float("inf")))
+        T = im.cam_from_world()
+        shift = float(np.linalg.norm(T.inverse().translation - prior.inverse().translation))
+        turn = rotation_angle_deg(T.rotation.matrix(), prior.rotation.matrix())
+        if shift > MISFIT_SHIFT_M or turn > MISFIT_ROTATION_DEG:
+            out[iid] = f"moved {shift:.2f} m / turned {turn:.1f} deg from its prior by the seeding BA"
+        elif n_multi < max(MISFIT_MIN_OBSERVATIONS, 0.25 * n_med, 0.5 * n_obs):
+            out[iid] = (f"{n_multi} of its {n_obs} points at its prior are seen by 3 or more photos "
+                        f"(median photo: {n_med:.0f})")
+        elif err > max(MISFIT_REPROJ_PX, 3.0 * e_med):
+            out[iid] = f"reprojection error {err:.1f} px at its prior (block median {e_med:.2f} px)"
+    return out
+
+
+def _prior_ba(rec, positions, outliers, accuracy, num_threads) -> dict:
+    """The seeding BA: positions as loose priors (a stated accuracy where tighter), every pose and point free."""
+    loose = {n: min(SEED_SIGMA_M, a) for n, a in accuracy.items()}
+    return hold_by_positions(rec, positions, outliers, loose, min_sigma_m=SEED_SIGMA_M, num_threads=num_threads)
+
+
+def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray], accuracy: dict[str, float],
+                   metas: dict, options: pycolmap.IncrementalPipelineOptions, num_threads: int = -1) -> Seeded:
+    """The block seeded by its priors (module docstring); ``Seeded.rec`` None: map it incrementally
+    (``record["fallback"]`` says why). ``options``: the incremental mapper's (triangulation, filtering,
+    absolute pose), so that photos registered from their matches are registered as it would."""
+    t0 = time.time()
+    with pycolmap.Database.open(db) as d:
+        copts = pycolmap.DatabaseCacheOptions()
+        copts.min_num_matches = options.min_num_matches
+        cache = pycolmap.DatabaseCache.create(d, copts)
+    mapper = pycolmap.IncrementalMapper(cache)
+    rec = pycolmap.Reconstruction()
+    mapper.begin_reconstruction(rec)
+    obs = mapper.observation_manager
+    by_name = {im.name: iid for iid, im in rec.images.items()}
+    seeds = {}
+    for n in names:
+        iid = by_name.get(n)
+        m = metas.get(n)
+        if iid is None or n not in positions or m is None or not m.has_gimbal:
+            continue
+        seeds[iid] = prior_pose(positions[n], m)
+        im = rec.images[iid]
+        rec.frame(im.frame_id).set_cam_from_world(im.camera_id, seeds[iid])
+        obs.register_frame(im.frame_id)
+    tri = options.triangulation
+    for iid in seeds:
+        mapper.triangulate_image(tri, iid)
+    mapper.complete_and_merge_tracks(tri)
+    t_tri = time.time()
+    record = {"n_seeded": len(seeds), "n_points3D_triangulated": rec.num_points3D()}
+    ba1 = _prior_ba(rec, positions, set(), accuracy, num_threads)
+    suspects = _suspects(rec, seeds)
+    if len(suspects) > 2 * MAX_MISFIT_SHARE * len(seeds):
+        iid, why = next(iter(suspects.items()))
+        record["fallback"] = (f"{len(suspects)} of {len(seeds)} photos do not fit their priors: e.g. "
+                              f"{rec.images[iid].name}: {why}")
+        return Seeded(None, record)
+    # the positions' scatter about the block the images made: what the GPS is worth, measured
+    ok = [rec.images[i].name for i in seeds if i not in suspects]
+    r = np.array([rec.images[by_name[n]].projection_center() - positions[n] for n in ok]).reshape(-1, 3)
+    scatter = float(np.median(np.linalg.norm(r - np.median(r, axis=0), axis=1))) if len(r) else 0.0
+    record["position_scatter_m"] = round(scatter, 4)
+    if scatter > MAX_PRIOR_ACCURACY_M:
+        record["fallback"] = (f"the positions scatter {scatter:.2f} m about the block the photos make "
+                              f"(> {MAX_PRIOR_ACCURACY_M} m: not RTK-grade)")
+        return Seeded(None, record)
+    # suspects and photos without a prior: registered from their matches to the block's points, as the
+    # incremental mapper registers a photo; a suspect its matches place away from its prior misfits
+    for iid in suspects:
+        obs.deregister_frame(rec.images[iid].frame_id)
+    left = [by_name[n] for n in names if n in by_name and by_name[n] not in seeds]
+    misfit, placed, failed, checked = {}, {}, {}, []
+    mopts = options.mapper
+    for iid in list(suspects) + left:
+        name = rec.images[iid].name
+        why = suspects.get(iid, "no prior pose (position or gimbal attitude missing)")
+        if not mapper.register_next_image(mopts, iid):
+            failed[name] = f"{why}; not registered from its matches either"
+            continue
+        mapper.triangulate_image(tri, iid)
+        if iid not in seeds:
+            placed[name] = why
+            continue
+        T = rec.images[iid].cam_from_world()
+        shift = float(np.linalg.norm(T.inverse().translation - seeds[iid].inverse().translation))
+        turn = rotation_angle_deg(T.rotation.matrix(), seeds[iid].rotation.matrix())
+        if shift > MISFIT_SHIFT_M or turn > MISFIT_ROTATION_DEG:
+            misfit[name] = f"{why}; its matches place it {shift:.2f} m / {turn:.1f} deg from its prior"
+        else:
+            checked.append(name)
+    bad = len(misfit) + sum(1 for n in failed if by_name[n] in seeds)
+    record["misfit_share"] = round(bad / max(1, len(seeds)), 3)
+    if bad > MAX_MISFIT_SHARE * len(seeds):
+        name, why = next(iter({**misfit, **failed}.items()))
+        record["fallback"] = (f"{bad} of {len(seeds)} photos do not fit their priors (more than "
+                              f"{100 * MAX_MISFIT_SHARE:.0f} %): e.g. {name}: {why}")
+        return Seeded(None, record)
+    outliers = set(misfit) | set(failed)
+    if suspects or left:
+        mapper.complete_and_merge_tracks(tri)
+        _prior_ba(rec, positions, outliers, accuracy, num_threads)
+    mapper.filter_points(mopts)
+    mapper.filter_frames(mopts)
+    record.update({"misfits": misfit, "placed_by_matches": placed, "not_registered": failed,
+                   "suspects_that_fit": checked, "ba_residual_median_m": ba1.get("residual_median_m", {}).get("after"),
+                   "seconds": {"triangulation": round(t_tri - t0, 1), "total": round(time.time() - t0, 1)}})
+    log.info("seeded block: %d photos at their priors, %d placed by their matches instead (%d of them misfit "
+             "their priors), %d not registered, %d points in %.1f s", len(seeds) - len(suspects),
+             len(suspects) + len(left) - len(failed), len(misfit), len(failed), rec.num_points3D(), time.time() - t0)
+    return Seeded(rec, record, outliers)
