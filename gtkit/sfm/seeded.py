@@ -10,7 +10,12 @@ bundle adjustment with the positions as priors (gtkit.sfm.prior_ba) refines pose
 2. **seed**: position from GPS / geo.txt in the project frame (the same positions the
    georegistration uses), rotation from the gimbal angles (gtkit.conventions.dji_to_rotation);
 3. **triangulate** every match with the poses held, then a pose-prior BA with a loose position
-   sigma (``SEED_SIGMA_M``: the images set the block's shape, the positions its place);
+   sigma (``SEED_SIGMA_M``: the images set the block's shape, the positions its place). A heading
+   error common to every photo (a gimbal's compass, the meridian convergence of a projected CRS)
+   leaves the loosely held block turned about its positions: a Sim(3) onto the positions turns it
+   back, and where the photos were turned alike by more than ``SEED_RESEED_DEG`` the block is
+   seeded again with that turn taken out of every attitude (measured on tiny seed 0: 1.5, 3 and
+   5 deg of added heading error seeded as well as none);
 4. **misfits**: a photo whose prior does not fit (moved by the BA beyond ``MISFIT_SHIFT_M`` /
    ``MISFIT_ROTATION_DEG``, too few or too bad observations) is taken out and registered as the
    incremental mapper registers a photo (absolute pose from its matches to the block's points,
@@ -18,13 +23,16 @@ bundle adjustment with the positions as priors (gtkit.sfm.prior_ba) refines pose
    the priors. A photo without a prior is registered the same way;
 5. **measured**: where more than ``MAX_MISFIT_SHARE`` of the photos misfit, or the positions
    scatter about the block by more than ``MAX_PRIOR_ACCURACY_M`` (metre-grade GPS that states
-   nothing), the whole block goes back to the incremental mapper, with that reason.
+   nothing), or the attitudes are off by more than a heading error, the whole block goes back to
+   the incremental mapper, with that reason (the real DJI consumer block of tests/test_sfm.py: all
+   18 photos misfit; tiny seed 0 with a 1 m wandering GPS error added: 20 of 45).
 
 The result is a block in the project frame; gtkit.sfm.blocks georegisters it (a Sim(3) near the
 identity), checks it for plausibility and holds it by its positions as it does any mapper's block.
 """
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import dataclass, field
@@ -34,6 +42,7 @@ import numpy as np
 import pycolmap
 
 from ..conventions import dji_to_rotation, rotation_angle_deg, translation_from_center
+from .geometry import RegistrationError, robust_sim3
 from .prior_ba import hold_by_positions
 
 log = logging.getLogger(__name__)
@@ -42,8 +51,15 @@ log = logging.getLogger(__name__)
 MAX_PRIOR_ACCURACY_M = 0.5
 MIN_SEEDED_SHARE = 0.95        # of the block's photos with a position and a gimbal attitude
 SEED_SIGMA_M = 0.25            # position sigma in the seeding BA (a stated accuracy, where smaller)
+SEED_BA_ITERATIONS = 8         # of the seeding BA (the position-held BA after georegistration refines again)
+SEED_BA_ROUNDS = 4             # seeding BA + Sim(3) onto the positions, until the Sim(3) turns less than
+SEED_TURN_DONE_DEG = 0.1       # this many degrees
+SEED_ATTEMPTS = 3              # seedings at most (each with the common turn the last one found taken out)
+SEED_RESEED_DEG = 0.5          # a common turn larger than this: seeded again with the attitude turned by it
+SEED_MAX_HEADING_DEG = 10.0    # a larger common turn: the priors do not fit (no heading error is that large)
+SEED_MERGE_PX = 10.0           # tracks joined before the seeding BA within this reprojection error
 MISFIT_SHIFT_M = 1.0           # a photo the seeding BA moves farther than this from its prior misfits ...
-MISFIT_ROTATION_DEG = 3.0      # ... or turns farther than this from its gimbal attitude
+MISFIT_ROTATION_DEG = 3.0      # ... or turns farther than this from its gimbal attitude (the turn common to all taken out)
 MISFIT_MIN_OBSERVATIONS = 30   # ... or that sees fewer of the block's points (or under a quarter of the median)
 MISFIT_REPROJ_PX = 3.0         # ... or whose median reprojection error is larger (and 3x the block's median)
 MAX_MISFIT_SHARE = 0.2         # more misfits than this: the whole block is mapped incrementally
@@ -76,9 +92,12 @@ def seeding_check(names: list[str], positions: dict[str, np.ndarray], accuracy: 
                      f" (accuracy stated nowhere: measured while seeding, <= {MAX_PRIOR_ACCURACY_M} m needed)"))
 
 
-def prior_pose(position: np.ndarray, meta) -> pycolmap.Rigid3d:
-    """cam_from_world of a photo at ``position`` (project frame) with its gimbal attitude."""
+def prior_pose(position: np.ndarray, meta, turn: np.ndarray | None = None) -> pycolmap.Rigid3d:
+    """cam_from_world of a photo at ``position`` (project frame) with its gimbal attitude (turned by
+    ``turn``, a world-frame rotation: a heading correction common to the block)."""
     R = dji_to_rotation(meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll)
+    if turn is not None:
+        R = R @ turn
     return pycolmap.Rigid3d(pycolmap.Rotation3d(R), translation_from_center(R, np.asarray(position, float)))
 
 
@@ -108,7 +127,22 @@ def _image_figures(rec: pycolmap.Reconstruction) -> dict[int, tuple[int, int, fl
     return out
 
 
-def _suspects(rec, seeds: dict[int, pycolmap.Rigid3d]) -> dict[int, str]:
+def _common_turn(rec, seeds: dict[int, pycolmap.Rigid3d]) -> np.ndarray:
+    """The rotation (world frame) the seeding BA gave every photo alike: a gimbal's heading bias (its
+    compass, the meridian convergence of a projected CRS) that the block's shape does not depend on."""
+    from scipy.spatial.transform import Rotation
+
+    turns = [seeds[i].rotation.matrix().T @ rec.images[i].cam_from_world().rotation.matrix() for i in seeds]
+    return Rotation.from_matrix(turns).mean().as_matrix() if turns else np.eye(3)
+
+
+def _off_prior(T: pycolmap.Rigid3d, prior: pycolmap.Rigid3d, common: np.ndarray) -> tuple[float, float]:
+    """(metres, degrees) a pose is from its prior, the common turn taken out of the rotation."""
+    shift = float(np.linalg.norm(T.inverse().translation - prior.inverse().translation))
+    return shift, rotation_angle_deg(prior.rotation.matrix().T @ T.rotation.matrix(), common)
+
+
+def _suspects(rec, seeds: dict[int, pycolmap.Rigid3d], common: np.ndarray) -> dict[int, str]:
     """{image id: why its prior may not fit} after the seeding BA (checked then by its matches)."""
     fig = _image_figures(rec)
     n_med = float(np.median([f[1] for f in fig.values()])) if fig else 0.0
@@ -117,9 +151,7 @@ def _suspects(rec, seeds: dict[int, pycolmap.Rigid3d]) -> dict[int, str]:
     for iid, prior in seeds.items():
         im = rec.images[iid]
         n_obs, n_multi, err = fig.get(iid, (0, 0, float("inf")))
-        T = im.cam_from_world()
-        shift = float(np.linalg.norm(T.inverse().translation - prior.inverse().translation))
-        turn = rotation_angle_deg(T.rotation.matrix(), prior.rotation.matrix())
+        shift, turn = _off_prior(im.cam_from_world(), prior, common)
         if shift > MISFIT_SHIFT_M or turn > MISFIT_ROTATION_DEG:
             out[iid] = f"moved {shift:.2f} m / turned {turn:.1f} deg from its prior by the seeding BA"
         elif n_multi < max(MISFIT_MIN_OBSERVATIONS, 0.25 * n_med, 0.5 * n_obs):
@@ -130,10 +162,52 @@ def _suspects(rec, seeds: dict[int, pycolmap.Rigid3d]) -> dict[int, str]:
     return out
 
 
-def _prior_ba(rec, positions, outliers, accuracy, num_threads) -> dict:
+def _onto_priors(rec: pycolmap.Reconstruction, names: list[str], positions: dict[str, np.ndarray]) -> float | None:
+    """``rec`` moved by the robust Sim(3) that takes its camera centres onto ``positions``; its angle
+    (degrees), None where no Sim(3) is found (too few photos, all on a line)."""
+    by_name = {im.name: im for im in rec.images.values() if im.has_pose}
+    names = [n for n in names if n in by_name]
+    try:
+        fit = robust_sim3(np.array([by_name[n].projection_center() for n in names]),
+                          np.array([positions[n] for n in names]), MISFIT_SHIFT_M, what="seeded camera centres")
+    except RegistrationError:
+        return None
+    rec.transform(fit.tgt_from_src)
+    return round(rotation_angle_deg(fit.tgt_from_src.rotation.matrix(), np.eye(3)), 3)
+
+
+def _prior_ba(rec, positions, outliers, accuracy, num_threads, max_iterations) -> dict:
     """The seeding BA: positions as loose priors (a stated accuracy where tighter), every pose and point free."""
     loose = {n: min(SEED_SIGMA_M, a) for n, a in accuracy.items()}
-    return hold_by_positions(rec, positions, outliers, loose, min_sigma_m=SEED_SIGMA_M, num_threads=num_threads)
+    return hold_by_positions(rec, positions, outliers, loose, min_sigma_m=SEED_SIGMA_M, max_iterations=max_iterations,
+                             num_threads=num_threads)
+
+
+def _seed(cache: pycolmap.DatabaseCache, names: list[str], positions: dict, metas: dict,
+          tri: pycolmap.IncrementalTriangulatorOptions, turn: np.ndarray):
+    """(mapper, reconstruction, {image id: prior pose}): every photo with a prior at its prior pose
+    (rotation turned by ``turn``, world frame), the matches triangulated."""
+    mapper = pycolmap.IncrementalMapper(cache)
+    rec = pycolmap.Reconstruction()
+    mapper.begin_reconstruction(rec)
+    by_name = {im.name: iid for iid, im in rec.images.items()}
+    seeds = {}
+    for n in names:
+        iid, m = by_name.get(n), metas.get(n)
+        if iid is None or n not in positions or m is None or not m.has_gimbal:
+            continue
+        seeds[iid] = prior_pose(positions[n], m, turn)
+        im = rec.images[iid]
+        rec.frame(im.frame_id).set_cam_from_world(im.camera_id, seeds[iid])
+        mapper.observation_manager.register_frame(im.frame_id)
+    for iid in seeds:
+        mapper.triangulate_image(tri, iid)
+    # the gimbal's rotation error splits tracks that are one point (a few px apart): joined before the BA
+    # (fewer, longer tracks: a cheaper and stiffer BA), checked at the usual threshold after it
+    loose = copy.copy(tri)
+    loose.merge_max_reproj_error = loose.complete_max_reproj_error = SEED_MERGE_PX
+    mapper.complete_and_merge_tracks(loose)
+    return mapper, rec, seeds
 
 
 def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray], accuracy: dict[str, float],
@@ -146,29 +220,53 @@ def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray],
         copts = pycolmap.DatabaseCacheOptions()
         copts.min_num_matches = options.min_num_matches
         cache = pycolmap.DatabaseCache.create(d, copts)
-    mapper = pycolmap.IncrementalMapper(cache)
-    rec = pycolmap.Reconstruction()
-    mapper.begin_reconstruction(rec)
+    tri, mopts = options.triangulation, options.mapper
+    clock, last = {}, [t0]
+
+    def lap(step):
+        clock[step], last[0] = round(time.time() - last[0], 1), time.time()
+
+    record = {"seconds": clock}
+    turn = np.eye(3)
+    for attempt in range(SEED_ATTEMPTS):
+        mapper, rec, seeds = _seed(cache, names, positions, metas, tri, turn)
+        lap("triangulation" if attempt == 0 else f"triangulation {attempt + 1}")
+        record.update(n_seeded=len(seeds), n_points3D_triangulated=rec.num_points3D())
+        # a common error of the gimbal's heading (compass, meridian convergence) leaves the block, loosely
+        # held, turned as a whole about its priors (a flat valley for the BA): the best Sim(3) onto the
+        # positions turns it back, cameras and points alike, and the BA goes on from there
+        turns = []
+        for _ in range(SEED_BA_ROUNDS):
+            ba1 = _prior_ba(rec, positions, set(), accuracy, num_threads, SEED_BA_ITERATIONS)
+            turns.append(_onto_priors(rec, [rec.images[i].name for i in seeds], positions))
+            if turns[-1] is None or turns[-1] < SEED_TURN_DONE_DEG:
+                break
+        record["sim3_to_priors_deg"] = turns
+        lap("bundle adjustment" if attempt == 0 else f"bundle adjustment {attempt + 1}")
+        common = _common_turn(rec, seeds)
+        left_deg = rotation_angle_deg(common, np.eye(3))
+        if left_deg < SEED_RESEED_DEG:
+            break
+        if left_deg > SEED_MAX_HEADING_DEG:
+            record["fallback"] = (f"the photos do not fit their priors: the seeding BA turned them {left_deg:.0f} deg "
+                                  f"in common (a gimbal's heading error is a few degrees)")
+            return Seeded(None, record)
+        if attempt == SEED_ATTEMPTS - 1:
+            record["fallback"] = (f"the gimbal attitude is off by {rotation_angle_deg(turn @ common, np.eye(3)):.1f} deg "
+                                  f"in common, {left_deg:.1f} deg of it left after {SEED_ATTEMPTS} seedings")
+            return Seeded(None, record)
+        # the points were made with that error in every ray: made again from priors without it
+        turn = turn @ common
+        record["heading_correction_deg"] = round(rotation_angle_deg(turn, np.eye(3)), 3)
     obs = mapper.observation_manager
     by_name = {im.name: iid for iid, im in rec.images.items()}
-    seeds = {}
-    for n in names:
-        iid = by_name.get(n)
-        m = metas.get(n)
-        if iid is None or n not in positions or m is None or not m.has_gimbal:
-            continue
-        seeds[iid] = prior_pose(positions[n], m)
-        im = rec.images[iid]
-        rec.frame(im.frame_id).set_cam_from_world(im.camera_id, seeds[iid])
-        obs.register_frame(im.frame_id)
-    tri = options.triangulation
-    for iid in seeds:
-        mapper.triangulate_image(tri, iid)
     mapper.complete_and_merge_tracks(tri)
-    t_tri = time.time()
-    record = {"n_seeded": len(seeds), "n_points3D_triangulated": rec.num_points3D()}
-    ba1 = _prior_ba(rec, positions, set(), accuracy, num_threads)
-    suspects = _suspects(rec, seeds)
+    mapper.filter_points(mopts)
+    lap("tracks merged")
+    common = _common_turn(rec, seeds)
+    record["common_turn_deg"] = round(rotation_angle_deg(common, np.eye(3)), 3)
+    suspects = _suspects(rec, seeds, common)
+    lap("photos checked")
     if len(suspects) > 2 * MAX_MISFIT_SHARE * len(seeds):
         iid, why = next(iter(suspects.items()))
         record["fallback"] = (f"{len(suspects)} of {len(seeds)} photos do not fit their priors: e.g. "
@@ -189,7 +287,6 @@ def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray],
         obs.deregister_frame(rec.images[iid].frame_id)
     left = [by_name[n] for n in names if n in by_name and by_name[n] not in seeds]
     misfit, placed, failed, checked = {}, {}, {}, []
-    mopts = options.mapper
     for iid in list(suspects) + left:
         name = rec.images[iid].name
         why = suspects.get(iid, "no prior pose (position or gimbal attitude missing)")
@@ -200,11 +297,9 @@ def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray],
         if iid not in seeds:
             placed[name] = why
             continue
-        T = rec.images[iid].cam_from_world()
-        shift = float(np.linalg.norm(T.inverse().translation - seeds[iid].inverse().translation))
-        turn = rotation_angle_deg(T.rotation.matrix(), seeds[iid].rotation.matrix())
-        if shift > MISFIT_SHIFT_M or turn > MISFIT_ROTATION_DEG:
-            misfit[name] = f"{why}; its matches place it {shift:.2f} m / {turn:.1f} deg from its prior"
+        shift, off_deg = _off_prior(rec.images[iid].cam_from_world(), seeds[iid], common)
+        if shift > MISFIT_SHIFT_M or off_deg > MISFIT_ROTATION_DEG:
+            misfit[name] = f"{why}; its matches place it {shift:.2f} m / {off_deg:.1f} deg from its prior"
         else:
             checked.append(name)
     bad = len(misfit) + sum(1 for n in failed if by_name[n] in seeds)
@@ -217,12 +312,13 @@ def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray],
     outliers = set(misfit) | set(failed)
     if suspects or left:
         mapper.complete_and_merge_tracks(tri)
-        _prior_ba(rec, positions, outliers, accuracy, num_threads)
-    mapper.filter_points(mopts)
+        _prior_ba(rec, positions, outliers, accuracy, num_threads, SEED_BA_ITERATIONS)
+        mapper.filter_points(mopts)
+        lap("photos placed by their matches")
     mapper.filter_frames(mopts)
+    clock["total"] = round(time.time() - t0, 1)
     record.update({"misfits": misfit, "placed_by_matches": placed, "not_registered": failed,
-                   "suspects_that_fit": checked, "ba_residual_median_m": ba1.get("residual_median_m", {}).get("after"),
-                   "seconds": {"triangulation": round(t_tri - t0, 1), "total": round(time.time() - t0, 1)}})
+                   "suspects_that_fit": checked, "ba_residual_median_m": ba1.get("residual_median_m", {}).get("after")})
     log.info("seeded block: %d photos at their priors, %d placed by their matches instead (%d of them misfit "
              "their priors), %d not registered, %d points in %.1f s", len(seeds) - len(suspects),
              len(suspects) + len(left) - len(failed), len(misfit), len(failed), rec.num_points3D(), time.time() - t0)
