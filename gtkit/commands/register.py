@@ -48,9 +48,11 @@ def run(args):
         else:
             print(f"{seq}: registered, {info['n_sim3_inliers']}/{info['n_tiepoints']} tie points Sim(3) inliers, {info['n_tiepoints_final_ba']} in the final BA, "
                   f"Sim(3) RMSE {info['sim3_rmse_m']:.3f} m")
-    print(f"pseudo-GT: {r['n_registered']}/{r['n_images']} query photos; median reprojection "
-          f"{r.get('median_reproj_px') or float('nan'):.2f} px, tie points {r.get('median_tiepoint_reproj_px') or float('nan'):.2f} px; "
-          f"{r.get('n_auto_tiepoints_in_ba', 0)} automatic tie points in the joint BA")
+    parts = [f"{what} {r[key]:.2f} px" for what, key in (
+        ("median reprojection: SfM points", "median_reproj_px"), ("clicked tie points", "median_tiepoint_reproj_px"),
+        ("automatic tie points", "median_auto_tiepoint_reproj_px")) if r.get(key) is not None]
+    print(f"pseudo-GT: {r['n_registered']}/{r['n_images']} query photos; " + (", ".join(parts) or "no reprojection figures")
+          + f"; {r.get('n_auto_tiepoints_in_ba', 0)} automatic tie points in the joint BA")
     for tid, b in (r.get("bad_tiepoints") or {}).items():
         print(f"  bad tie point {tid}: {b['reason']}; " + ", ".join(
             f"{c['image']} ({c['residual_px']:.0f} px)" for c in b["dropped_clicks"]))

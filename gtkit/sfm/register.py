@@ -54,6 +54,7 @@ from ..io.exif import prior_pose, read_photo_meta
 from .crossmatch import (AUTO_PREFIX, CrossMatchSettings, ReferencePoints, cross_matches, match_photo,
                          match_photo_wide, photo_features, reference_point_of)
 from .resect import candidate_priors, resect_sequence
+from .extend_reference import ExtendSettings, extension_ties
 from .tie_surface import SmoothSurfaceSettings, smooth_surface_filter
 from .geometry import (RegistrationError, model_cameras, model_poses, robust_sim3, triangulate_clicks,
                        triangulate_many)
@@ -117,6 +118,9 @@ class RegisterSettings:
     systematic_swing_px: float = 0.15
     # sequences without enough usable clicks: placed by automatic matches to the reference points
     bootstrap: BootstrapSettings = field(default_factory=BootstrapSettings)
+    # photos placed on their own (left out by their sequence's SfM): registered into the reference
+    # block by keypoint matches with the reference photos, its points joining as automatic ties
+    extend: ExtendSettings = field(default_factory=ExtendSettings)
 
 
 def swing_covariance(t: np.ndarray, depth_m: float, focal_px: float, swing_px: float) -> np.ndarray:
@@ -1077,6 +1081,15 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         rough = {t for t, k in zip(ids, keep) if not k}
         log.info("automatic tie points: %d of %d on smooth model surface", len(auto) - len(rough), n_auto_found)
     clicks.update(auto)
+    solo = sorted(n for n, r in resected.items() if r.get("resected") and n in qp)
+    if solo and settings.extend.enabled:
+        ext, ext_rec = extension_ties(
+            ref_rec, ref_db, {n: (qp[n], qc[n], P.stage(QUERIES_STAGE) / n.split("/")[1] / "database.db") for n in solo},
+            P.images, out / "extend", settings.extend, num_threads=settings.num_threads)
+        for n, r in ext_rec.items():
+            resected[n]["extended"] = r
+        clicks.update(ext)
+        auto.update(ext)
     t_cm = time.time() - t_cm
     j, summary, cov, dropped, auto_choice = _adjust_choosing_ties(ref_rec, blocks, statuses, clicks, set(auto), rough,
                                                                  settings)
@@ -1148,6 +1161,9 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         "median_reproj_px": float(np.median(sfm_err)) if len(sfm_err) else None,
         "mean_reproj_px": float(np.mean(sfm_err)) if len(sfm_err) else None,
         "median_tiepoint_reproj_px": float(np.median(tie_err)) if tie_err else None,
+        "median_auto_tiepoint_reproj_px": (float(np.median(point_reprojection_errors(
+            rec, [pid for t, pid in j.tie_pids.items() if t.startswith(AUTO_PREFIX)])))
+            if any(t.startswith(AUTO_PREFIX) for t in j.tie_pids) else None),
         "n_tiepoints_in_ba": sum(1 for t in j.tie_pids if not t.startswith(AUTO_PREFIX)),
         "n_auto_tiepoints_found": n_auto_found, "auto_tiepoints_on_smooth_surface_only": smooth_only,
         "auto_ties_test_by_sequence": auto_choice,
