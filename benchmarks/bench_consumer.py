@@ -13,6 +13,8 @@ altitude drifting 60 m, no XMP attitude, no GCPs), optionally the tie-point clic
   photos: a GPS-placed site is only as absolute as its GPS), and also absolute.
 
     python benchmarks/bench_consumer.py --preset tiny --seeds 0 1 2 [--no-clicks] [--variants consumer-gps no-gcps]
+    python benchmarks/bench_consumer.py --preset small --seeds 13 --no-clicks --work W --resume   # go on
+    python benchmarks/bench_consumer.py --preset small --seeds 13 --variants consumer-gps no-gcps nadir-heldout
 """
 from __future__ import annotations
 
@@ -68,20 +70,21 @@ def evaluate(proj: Path) -> dict:
     return out
 
 
-def run_one(preset: str, seed: int, variants: list[str], no_clicks: bool, work: Path) -> dict:
+def run_one(preset: str, seed: int, variants: list[str], no_clicks: bool, work: Path, resume: bool = False) -> dict:
     from gtkit.synth.variants import apply_variant
 
     env = dict(os.environ, GTKIT_PROGRESS="0")
     proj = work / f"{preset}_{seed}_{'+'.join(variants)}{'_noclicks' if no_clicks else ''}"
-    shutil.rmtree(proj, ignore_errors=True)
     py = [sys.executable, "-m", "gtkit.cli"]
-    subprocess.run(py + ["sample", "create", str(proj), "--preset", preset, "--seed", str(seed)], env=env, cwd=ROOT,
-                   check=True, capture_output=True)
-    shutil.rmtree(proj / "model", ignore_errors=True)   # the user's site has no model: gtkit run builds one
-    for v in variants:
-        apply_variant(proj, v, seed=seed)
-    if no_clicks:
-        (proj / "tiepoints.json").unlink(missing_ok=True)
+    if not (resume and (proj / "project.toml").is_file()):
+        shutil.rmtree(proj, ignore_errors=True)
+        subprocess.run(py + ["sample", "create", str(proj), "--preset", preset, "--seed", str(seed)], env=env,
+                       cwd=ROOT, check=True, capture_output=True)
+        shutil.rmtree(proj / "model", ignore_errors=True)   # the user's site has no model: gtkit run builds one
+        for v in variants:
+            apply_variant(proj, v, seed=seed)
+        if no_clicks:
+            (proj / "tiepoints.json").unlink(missing_ok=True)
     t = time.time()
     r = subprocess.run(py + ["run", str(proj)], env=env, capture_output=True, text=True, cwd=ROOT)
     out = {"seconds": time.time() - t, "exit": r.returncode, "project": str(proj)}
@@ -103,6 +106,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-clicks", action="store_true", help="remove tiepoints.json (click-free pseudo-GT)")
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--resume", action="store_true",
+                    help="a project already in --work is run on (gtkit run resumes its finished stages)")
     a = ap.parse_args(argv)
     work = a.work or Path(tempfile.mkdtemp(prefix="bench_consumer_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -112,7 +117,7 @@ def main(argv=None) -> int:
           "| localization in block frame: n, median m, recall 1/3/5 | absolute loc. recall 3m3° | s | exit |")
     print("|---|---|---|---|---|---|---|---|---|")
     for s in a.seeds:
-        r = run_one(a.preset, s, a.variants, a.no_clicks, work)
+        r = run_one(a.preset, s, a.variants, a.no_clicks, work, a.resume)
         rows.append({"seed": s, **r})
         ref = r.get("reference") or {}
         pg = r.get("pseudo_gt_block") or {}

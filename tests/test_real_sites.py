@@ -256,3 +256,25 @@ def test_models_placed_in_the_world_are_merged_with_their_points():
     got = model_poses(merged)
     assert all(np.allclose(got[n].matrix, p.matrix, atol=1e-9) for n, p in all_poses.items())
     assert merged.compute_mean_reprojection_error() < 1e-6
+
+
+def test_nadir_heldout_variant_is_a_mapping_flight_with_photos_held_out(tiny_sample, tmp_path):
+    """``nadir-heldout`` (the hidden real site of issue 33: a nadir flight, every 5th photo held out
+    as a query): only nadir reference photos stay, every 5th of them from the 3rd is a query of
+    ``queries/heldout`` with its true pose under the new name, the sample's own sequences, clicks
+    and cameras.txt are gone, and the project's query setting takes every photo (as init writes it)."""
+    from gtkit.queries import query_photos
+
+    before = read_poses(tiny_sample[0] / "truth/poses.txt")
+    root = _variant(tiny_sample, tmp_path, "nadir-heldout")
+    refs = sorted(p.name for p in (root / "images/reference").iterdir())
+    nadir = sorted(n.split("/")[-1] for n in before if n.startswith("reference/") and n.endswith("_N.jpg"))
+    held = nadir[2::5]
+    assert held and refs == sorted(set(nadir) - set(held))
+    assert sorted(p.name for p in (root / "images/queries").rglob("*.jpg")) == held
+    assert not (root / "tiepoints.json").exists() and not (root / "cameras.txt").exists()
+    truth = read_poses(root / "truth/poses.txt")
+    for n in held:
+        q = truth[f"queries/heldout/{n}"]
+        assert np.allclose(q.center, before[f"reference/{n}"].center)
+    assert sorted(query_photos(Project.load(root))) == [f"queries/heldout/{n}" for n in held]

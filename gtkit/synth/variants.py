@@ -19,6 +19,13 @@ no focal length anywhere, GCPs surveyed without heights. Each edits a copy in pl
   off, altitude climbing 317 -> 431 m, no gimbal angles).
 - ``query-gps-5`` / ``query-gps-15``: the query photos' GPS degraded to ~5 / ~15 m (horizontal and
   vertical, the altitude with a slow drift); their XMP attitude kept, its altitude rewritten too.
+- ``nadir-heldout``: a nadir mapping flight with photos held out of it, as a user checks a site
+  with its own photos (the hidden real site of issue 33: 75 nadir photos, 15 held out): only the
+  five-eye block's nadir photos stay reference photos; every 5th of them (in capture order, from
+  the 3rd) becomes a query in ``images/queries/heldout/`` (truth poses under the new names), the
+  sample's own query sequences, their clicks (``tiepoints.json``) and ``cameras.txt`` go, and
+  ``[sfm] query_pattern = "*"`` (as ``gtkit init`` writes it). Apply after a GPS variant so the
+  held-out photos keep the flight's GPS errors.
 """
 from __future__ import annotations
 
@@ -32,7 +39,7 @@ import numpy as np
 from PIL import Image
 
 VARIANTS = ("no-gps", "no-focal", "flat-gcps", "checkpoints", "survey-geo", "no-gcps", "no-attitude", "consumer-gps",
-            "query-gps-5", "query-gps-15")
+            "query-gps-5", "query-gps-15", "nadir-heldout")
 # (which photos, horizontal sigma m, altitude offset sigma m, altitude drift over the flight m, strip XMP)
 _GPS_VARIANTS = {"consumer-gps": ("all", 10.0, 10.0, 60.0, True),
                  "query-gps-5": ("queries", 5.0, 5.0, 5.0, False),
@@ -212,5 +219,43 @@ def apply_variant(root: str | Path, name: str, seed: int = 0) -> None:
         names = [n for n in sorted(truth) if n.startswith("reference/")]
         (root / "geo.txt").write_text(proj.frame.crs_spec + "\n" + "".join(
             f"{n} {x:.4f} {y:.4f} {z:.4f} 0 0 0 0.005 0.005\n" for n, (x, y, z) in zip(names, rows)))
+    elif name == "nadir-heldout":
+        _nadir_heldout(root, refs, queries)
     else:
         raise ValueError(f"unknown sample variant {name!r} (known: {', '.join(VARIANTS)})")
+
+
+def _nadir_heldout(root: Path, refs: list[Path], queries: list[Path], every: int = 5, first: int = 2) -> None:
+    """The ``nadir-heldout`` variant (see the module doc)."""
+    import shutil
+
+    nadir = [p for p in refs if p.stem.upper().endswith("_N")]
+    if not nadir:
+        raise ValueError(f"{root}: no nadir reference photos (*_N.jpg) to make a nadir flight of")
+    for p in refs:
+        if p not in nadir:
+            p.unlink()
+    for d in sorted({p.parent for p in queries}):
+        shutil.rmtree(d)
+    held = nadir[first::every]
+    out = root / "images" / "queries" / "heldout"
+    out.mkdir(parents=True, exist_ok=True)
+    moved = {}
+    for p in held:
+        p.rename(out / p.name)
+        moved[f"reference/{p.name}"] = f"queries/heldout/{p.name}"
+    for f in ("tiepoints.json", "cameras.txt"):
+        (root / f).unlink(missing_ok=True)
+    truth = root / "truth" / "poses.txt"
+    if truth.is_file():
+        lines = truth.read_text().splitlines()
+        extra = [moved[ln.split()[0]] + ln[len(ln.split()[0]):] for ln in lines
+                 if ln.split() and ln.split()[0] in moved]
+        truth.write_text("\n".join(lines + extra) + "\n")
+    toml = root / "project.toml"
+    text = toml.read_text()
+    if "[sfm]" in text:
+        text = text.replace("[sfm]", '[sfm]\nquery_pattern = "*"', 1)
+    else:
+        text = text.rstrip("\n") + '\n\n[sfm]\nquery_pattern = "*"\n'
+    toml.write_text(text)
