@@ -13,7 +13,7 @@ from gtkit.io.poses import read_poses
 from gtkit.project import Project
 from gtkit.sfm.blocks import run_reference
 from gtkit.sfm.geometry import RegistrationError, robust_sim3
-from gtkit.sfm.gps_fit import gravity_held_fit
+from gtkit.sfm.gps_fit import altitude_drift_at, gravity_held_fit
 from gtkit.sfm.gravity import Up
 from gtkit.sfm.plausibility import check_block
 from gtkit.synth.variants import apply_variant
@@ -58,6 +58,14 @@ def test_gravity_held_fit_keeps_the_tilt_where_consumer_altitudes_drift(seed):
     assert abs(fit.sim.scale * s_m - 1) < 0.05
     assert fit.record["share_kept"] >= 0.9
     assert abs(fit.record["altitude_drift_m"] - 60.0) < 10.0
+    # a photo of the same flight (held out of it): its GPS altitude corrected by the drift at its
+    # capture time lands on the placed block's heights (within the altitudes' own 1 m scatter + the
+    # drift's error), a photo of another flight is not corrected
+    world_z = (fit.sim.scale * src @ fit.sim.rotation.matrix().T + fit.sim.translation)[:, 2]
+    corrected = tgt[:, 2] - np.array([altitude_drift_at(fit.record, float(t)) for t in range(n)])
+    assert np.median(np.abs(corrected - world_z)) < 3.0, np.median(np.abs(corrected - world_z))
+    assert np.median(np.abs(tgt[:, 2] - world_z)) > 10.0
+    assert altitude_drift_at(fit.record, 3.0 * n) is None
     heading = np.degrees(np.arctan2((R @ Rm)[1, 0], (R @ Rm)[0, 0]))
     assert abs(heading) < 3.0
     # the claimed accuracy covers the horizontal error of the placed cameras

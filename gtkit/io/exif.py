@@ -201,6 +201,18 @@ def write_jpeg_with_meta(path: str | Path, rgb, *, lat: float | None = None, lon
     return Path(path)
 
 
+def capture_seconds(stamp: str | None) -> float | None:
+    """An EXIF date-time ("YYYY:MM:DD HH:MM:SS", as :class:`PhotoMeta.timestamp`) in seconds, or None."""
+    import datetime as dt
+
+    if not stamp:
+        return None
+    try:
+        return dt.datetime.strptime(stamp.strip()[:19], "%Y:%m:%d %H:%M:%S").timestamp()
+    except ValueError:
+        return None
+
+
 def prior_pose(path: str | Path, frame):
     """The pose a photo's metadata claims (EXIF GPS position, DJI gimbal attitude) in ``frame``'s
     world, or None when the photo cannot say (unreadable, no GPS, no gimbal angles, no altitude)."""

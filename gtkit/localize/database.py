@@ -330,13 +330,21 @@ def query_flight(project: Project, renderer, extent, ground_z: float, cells: int
     of its position, from an orthographic height render; the ground level ``ground_z`` off the
     model); its gimbal pitch off nadir where it has DJI angles; the field of view of each photo
     whose intrinsics resolve (:func:`gtkit.queries.query_cameras`)."""
-    from ..io.exif import read_photo_meta
+    from ..io.exif import capture_seconds, read_photo_meta
     from ..queries import query_cameras, query_photos
+    from ..sfm.gps_fit import altitude_drift_at
 
     names = query_photos(project)
     out = {"n_queries": len(names), "agl_m": {}, "off_nadir_deg": {}, "hfov_deg": {}, "notes": []}
     if not names:
         return out
+    # photos of the reference flight itself (held out of it): their GPS altitude drifts as the
+    # reference photos' did, and the georegistration measured that drift (consumer GPS: tens of m)
+    ref_report = project.paths.reports / "reference.json"
+    fit = None
+    if ref_report.is_file():
+        fit = (json.loads(ref_report.read_text()).get("georegistration") or {}).get("fit")
+    n_drift = 0
     xmin, ymin, xmax, ymax = extent
     gsd = max(xmax - xmin, ymax - ymin) / cells
     hmap = renderer.render_ortho(xmin, ymin, xmax, ymax, gsd, with_rgb=False).depth  # row 0 = ymax
@@ -348,6 +356,10 @@ def query_flight(project: Project, renderer, extent, ground_z: float, cells: int
         if not (m.has_gps and m.altitude is not None):
             continue
         x, y, z = (float(v) for v in np.ravel(project.frame.wgs84_to_local(m.lon, m.lat, m.altitude))[:3])
+        drift = altitude_drift_at(fit, capture_seconds(m.timestamp))
+        if drift is not None:
+            z -= drift
+            n_drift += 1
         r_, c_ = int((ymax - y) / gsd), int((x - xmin) / gsd)
         win = hmap[max(0, r_ - k):max(0, r_ + k + 1), max(0, c_ - k):max(0, c_ + k + 1)]
         ground = float(np.nanmedian(win)) if win.size and np.isfinite(win).any() else ground_z
@@ -356,6 +368,9 @@ def query_flight(project: Project, renderer, extent, ground_z: float, cells: int
                                 "under it: left out of the height envelope")
             continue
         out["agl_m"][n] = z - ground
+    if n_drift:
+        out["notes"].append(f"{n_drift} photos taken during the reference flight: GPS altitude corrected by the "
+                            f"drift its georegistration measured ({fit['altitude_drift_m']:.1f} m over the flight)")
     try:
         cams = query_cameras(project, names)
         out["hfov_deg"] = {n: float(c.camera.hfov_deg()) for n, c in cams.items()}

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pycolmap
 
+from ..io.exif import capture_seconds
 from ..io.odm import GCP
 from .geometry import (RegistrationError, Sim3Fit, model_cameras, model_poses, robust_sim3, sim3_apply,
                        triangulate_clicks)
@@ -78,20 +79,9 @@ def _not_usable(gcp_sfm: dict, names: list[str]) -> str:
                      for n in names)
 
 
-def _seconds(stamp: str | None) -> float | None:
-    import datetime as dt
-
-    if not stamp:
-        return None
-    try:
-        return dt.datetime.strptime(stamp.strip()[:19], "%Y:%m:%d %H:%M:%S").timestamp()
-    except ValueError:
-        return None
-
-
 def capture_times(names: list[str], metas: dict) -> np.ndarray:
     """Each photo's capture time (EXIF seconds) where every photo has one, else its order by name."""
-    t = [_seconds(getattr(metas.get(n), "timestamp", None)) for n in names]
+    t = [capture_seconds(getattr(metas.get(n), "timestamp", None)) for n in names]
     if all(v is not None for v in t) and len(set(t)) > 1:
         return np.array(t, float)
     order = {n: k for k, n in enumerate(sorted(names))}

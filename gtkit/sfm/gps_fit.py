@@ -216,6 +216,8 @@ def gravity_held_fit(names: list[str], src: np.ndarray, tgt: np.ndarray, times: 
         "vertical_residual_median_m": float(np.median(np.abs(res_v_final[inl]))) if inl.any() else None,
         "sigma_h_m": sigma_h_axis, "sigma_v_m": sigma_v,
         "altitude_drift_m": drift_m if use_drift else 0.0,
+        # when the drift is zero (capture time, seconds) and how it runs: see altitude_drift_at
+        "drift_time_start_s": float(t.min()) if span > 0 else None, "drift_tau_mid": tau_mid,
         "altitude_offset_m": float(tz),
         "flight_seconds": span if span > 0 else None,
         "scale_precision": float(rel_scale),
@@ -227,3 +229,18 @@ def gravity_held_fit(names: list[str], src: np.ndarray, tgt: np.ndarray, times: 
                            float(np.median(acc)) if np.any(acc > 0) else None),
     }
     return GpsFit(sim, inl, r_h, res_v_final, record)
+
+
+def altitude_drift_at(fit: dict | None, t: float | None, margin: float = 0.1) -> float | None:
+    """How far the GPS altitude of a photo taken at ``t`` (EXIF capture time, seconds) is off by the
+    drift that the reference flight's gravity-held fit (``fit``, its record) found: subtract it from
+    the photo's GPS altitude. None where no drift was fitted or ``t`` lies outside the flight (by more
+    than ``margin`` of its length): another flight's altitudes drift their own way."""
+    if not fit or t is None or not fit.get("altitude_drift_m") or not fit.get("flight_seconds") \
+            or fit.get("drift_time_start_s") is None:
+        return None
+    span = float(fit["flight_seconds"])
+    tau = (float(t) - float(fit["drift_time_start_s"])) / span
+    if not -margin <= tau <= 1.0 + margin:
+        return None
+    return float(fit["altitude_drift_m"]) * (tau - float(fit.get("drift_tau_mid", 0.5)))
