@@ -98,6 +98,14 @@ def run(args):
         res = run_queries(project, s, force=args.force, executor=ex)
         bad = 0
         for seq, r in res.items():
+            if "error" in r and r.get("unregistered"):
+                # photos that match no other (held out of a flight, far apart): not a failure of the
+                # project; the registration resects each photo on its own against the reference block
+                print(f"{seq}: no model of its own ({r['error']}); `gtkit register` places each of its "
+                      f"{len(r['unregistered'])} photos on its own against the reference block")
+                for why, names in by_reason(r["unregistered"]):
+                    print(f"  ({len(names)}) {why}: {', '.join(names)}")
+                continue
             if "error" in r:
                 bad += 1
                 print(f"{seq}: ERROR {r['error']}")
