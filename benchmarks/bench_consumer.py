@@ -45,6 +45,8 @@ def _aligned(est: dict, truth: dict, sim) -> dict:
 def evaluate(proj: Path) -> dict:
     from gtkit.evaluate.poses import block_frame_errors, medians, pose_errors, recall
     from gtkit.io.poses import read_poses
+    from gtkit.project import Project
+    from gtkit.queries import query_photos
     from gtkit.sfm.similarity import umeyama
 
     truth = read_poses(proj / "truth/poses.txt")
@@ -61,7 +63,7 @@ def evaluate(proj: Path) -> dict:
         if not (proj / f).is_file():
             continue
         est = read_poses(proj / f)
-        queries = sorted(n for n in truth if n.startswith("queries/") and "_W." in n)
+        queries = [n for n in query_photos(Project.load(proj)) if n in truth]   # the project's own query setting
         for frame, t in (("block", truth_in_block), ("absolute", truth)):
             e = pose_errors(est, t, [n for n in queries if n in est])
             m = medians(e)
