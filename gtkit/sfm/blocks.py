@@ -291,6 +291,12 @@ def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: d
 
     seedable = (seeding_check(priors["names"], priors["positions"], priors["accuracy"], priors["metas"])
                 if priors is not None else None)
+    if seedable is not None and seedable[0] and (policy["refine_focal"] or policy["refine_distortion"]):
+        # measured (tiny seed 0 without cameras.txt, EXIF focal 4 % off): the positions and the fixed wrong
+        # focal length disagree, the seeded block bends (0.30 / 0.65 m), and refining the focal length
+        # afterwards does not mend it
+        seedable = (False, "its cameras are calibrated while mapping (no cameras.txt calibration for every "
+                           "reference camera): seeding needs known intrinsics")
     name, why = choose_mapper(settings.mapper, n_images, seedable)
     record = {"name": name, "why": why}
     if name == "global":

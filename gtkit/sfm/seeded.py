@@ -6,7 +6,9 @@ photo starts at its prior pose, the database's matches are triangulated with tho
 bundle adjustment with the positions as priors (gtkit.sfm.prior_ba) refines poses and points:
 
 1. **eligible** (:func:`seeding_check`): nearly every photo has a position and a gimbal attitude,
-   and no position's stated accuracy (geo.txt) is worse than ``MAX_PRIOR_ACCURACY_M``;
+   and no position's stated accuracy (geo.txt) is worse than ``MAX_PRIOR_ACCURACY_M``; and (checked
+   by gtkit.sfm.blocks) every camera is calibrated (cameras.txt): with only an EXIF focal length the
+   positions and a focal length a few % off disagree and the seeded block bends;
 2. **seed**: position from GPS / geo.txt in the project frame (the same positions the
    georegistration uses), rotation from the gimbal angles (gtkit.conventions.dji_to_rotation);
 3. **triangulate** every match with the poses held, then a pose-prior BA with a loose position
@@ -214,7 +216,8 @@ def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray],
                    metas: dict, options: pycolmap.IncrementalPipelineOptions, num_threads: int = -1) -> Seeded:
     """The block seeded by its priors (module docstring); ``Seeded.rec`` None: map it incrementally
     (``record["fallback"]`` says why). ``options``: the incremental mapper's (triangulation, filtering,
-    absolute pose), so that photos registered from their matches are registered as it would."""
+    absolute pose), so that photos registered from their matches are registered as it would. The
+    cameras' intrinsics are held (gtkit.sfm.blocks seeds only blocks whose cameras are calibrated)."""
     t0 = time.time()
     with pycolmap.Database.open(db) as d:
         copts = pycolmap.DatabaseCacheOptions()
