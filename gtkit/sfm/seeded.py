@@ -18,11 +18,12 @@ bundle adjustment with the positions as priors (gtkit.sfm.prior_ba) refines pose
    back, and where the photos were turned alike by more than ``SEED_RESEED_DEG`` the block is
    seeded again with that turn taken out of every attitude (measured on tiny seed 0: 1.5, 3 and
    5 deg of added heading error seeded as well as none);
-4. **misfits**: a photo whose prior does not fit (moved by the BA beyond ``MISFIT_SHIFT_M`` /
-   ``MISFIT_ROTATION_DEG``, too few of its points seen by 3+ photos) is taken out and registered as the
-   incremental mapper registers a photo (absolute pose from its matches to the block's points,
-   ``IncrementalMapper.register_next_image``), never left at its prior; its position then leaves
-   the priors. A photo without a prior is registered the same way;
+4. **misfits**: a photo whose prior may not fit (moved by the BA beyond ``MISFIT_SHIFT_M`` /
+   ``MISFIT_ROTATION_DEG``, too few of its points seen by 3+ photos) is taken out and registered as
+   the incremental mapper registers a photo (absolute pose from its matches to the block's points,
+   ``IncrementalMapper.register_next_image``); where that pose is as far from its prior, the photo
+   misfits and its position leaves the priors (here and in gtkit.sfm.blocks' position-held BA): it
+   is never left at a prior that does not fit. A photo without a prior is registered the same way;
 5. **measured**: where more than ``MAX_MISFIT_SHARE`` of the photos misfit, or the positions
    scatter about the block by more than ``MAX_PRIOR_ACCURACY_M`` (metre-grade GPS that states
    nothing), or the attitudes are off by more than a heading error, the whole block goes back to
@@ -61,7 +62,7 @@ SEED_ATTEMPTS = 3              # seedings at most (each with the common turn the
 SEED_RESEED_DEG = 0.5          # a common turn larger than this: seeded again with the attitude turned by it
 SEED_MAX_HEADING_DEG = 10.0    # a larger common turn: the priors do not fit (no heading error is that large)
 SEED_MERGE_PX = 10.0           # tracks joined before the seeding BA within this reprojection error
-MISFIT_SHIFT_M = 1.0           # a photo the seeding BA moves farther than this from its prior misfits ...
+MISFIT_SHIFT_M = 1.0           # a photo the seeding BA moves farther than this from its prior is checked ...
 MISFIT_ROTATION_DEG = 3.0      # ... or turns farther than this from its gimbal attitude (the turn common to all taken out)
 MISFIT_MIN_OBSERVATIONS = 30   # ... or whose points seen by 3+ photos are fewer (or under a quarter of the
                                # median, or half its points)
