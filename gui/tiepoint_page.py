@@ -4,15 +4,24 @@ Left click places the active tie point's observation in that photo (a new tie po
 active one already has one there); drag a marker to move it; Delete removes the active tie
 point; Ctrl+Z / Ctrl+Shift+Z undo / redo. References are ranked by likely overlap. Suggested
 correspondences (S) are accepted with A and rejected with R. Every edit is in the file at once.
+
+After a registration the page also shows the next *guided click* (``work/register/guided_clicks.json``,
+written by ``gtkit register``, :mod:`gtkit.sfm.guided_clicks`): the query photo and the area in it
+(a box) whose tie point would cut its sequence's position sigma most, and where to click the same
+point in a reference photo. "Next guided click" opens that pair; a suggestion counts as done once a
+tie point has been added inside its box.
 """
 from __future__ import annotations
 
+import json
 import logging
 
-from PySide6.QtCore import QObject, QRunnable, QThreadPool, Qt, Signal
-from PySide6.QtGui import QUndoStack
-from PySide6.QtWidgets import (QHBoxLayout, QLabel, QListWidget, QListWidgetItem, QPushButton, QSplitter,
-                               QTreeWidget, QTreeWidgetItem, QVBoxLayout, QWidget)
+from PySide6.QtCore import QObject, QRectF, QRunnable, QThreadPool, Qt, Signal
+from PySide6.QtGui import QColor, QPen, QUndoStack
+from PySide6.QtWidgets import (QGraphicsRectItem, QHBoxLayout, QLabel, QListWidget, QListWidgetItem, QPushButton,
+                               QSplitter, QTreeWidget, QTreeWidgetItem, QVBoxLayout, QWidget)
+
+from gtkit.sfm.guided_clicks import GUIDANCE_FILE
 
 from gtkit.io.tiepoints import Observation, TiePoint
 
@@ -77,6 +86,14 @@ class TiePointPage(QWidget):
         self._pool.setMaxThreadCount(1)
         self._sig = _SuggestSignals()
         self._sig.done.connect(self._on_suggestions)
+        self.guide = read_guidance(paths)
+        self.guide_base = {i: self._in_box(g) for i, g in enumerate(self.guide)}   # tie points in each box at start
+        self.guide_current: int | None = None
+        self.guide_label = QLabel("")
+        self.guide_label.setWordWrap(True)
+        self.guide_button = QPushButton("Next guided click (G)")
+        self.guide_button.setEnabled(bool(self.guide))
+        self.guide_box: QGraphicsRectItem | None = None
 
         side = QVBoxLayout()
         side.addWidget(QLabel("Query photos (N / P)"))
@@ -87,6 +104,8 @@ class TiePointPage(QWidget):
         side.addWidget(self.tp_tree, 3)
         side.addWidget(self.suggest_button)
         side.addWidget(self.suggest_label)
+        side.addWidget(self.guide_button)
+        side.addWidget(self.guide_label)
         left = QWidget()
         left.setLayout(side)
         left.setMaximumWidth(330)
@@ -108,6 +127,8 @@ class TiePointPage(QWidget):
         self.ref_list.currentItemChanged.connect(self._ref_item_changed)
         self.tp_tree.itemClicked.connect(lambda it, _c: self.jump_to(it.data(0, ROLE)))
         self.suggest_button.clicked.connect(lambda: self.compute_suggestions())
+        self.guide_button.clicked.connect(lambda: self.next_guided())
+        self._update_guide_label()
         self.qview.clicked.connect(lambda x, y: self.place(self.query, x, y))
         self.rview.clicked.connect(lambda x, y: self.place(self.reference, x, y))
         for v in (self.qview, self.rview):
@@ -225,6 +246,8 @@ class TiePointPage(QWidget):
             self.refresh()
 
     def _marker_pressed(self, key: str):
+        if key.startswith("g:"):   # the guided click's marker only shows where: click the feature itself
+            return
         if key.startswith("s:"):
             self.suggestion_index = int(key[2:])
             self.refresh()
@@ -303,7 +326,9 @@ class TiePointPage(QWidget):
         self._focus_suggestion()
 
     def _after_edit(self):
-        """After any edit (or undo/redo): fresh residual for the edited tie point, then redraw."""
+        """After any edit (or undo/redo): fresh residual for the edited tie point, the guided-click
+        label (a click inside the box completes it), then redraw."""
+        self._update_guide_label()
         if self.posed is not None and self.posed.available:
             cmd = self.undo.command(self.undo.index() - 1) if self.undo.index() > 0 else None
             ids = {getattr(cmd, "tp_id", None) or getattr(getattr(cmd, "tp", None), "id", None)}
@@ -317,6 +342,68 @@ class TiePointPage(QWidget):
                 else:  # edited since registration: its registration verdict no longer applies
                     self.residuals[tid] = r
         self.refresh()
+
+    # --- guided clicks -------------------------------------------------------------------------
+    def _in_box(self, g: dict) -> int:
+        x0, y0, x1, y1 = g["box"]
+        return sum(1 for _tp, o in self.store.in_image(g["photo"]) if x0 <= o.x <= x1 and y0 <= o.y <= y1)
+
+    def guide_pending(self) -> list[int]:
+        """Indices of the guided clicks not done yet (no tie point added inside the box since start)."""
+        return [i for i, g in enumerate(self.guide) if self._in_box(g) <= self.guide_base[i]]
+
+    def next_guided(self) -> dict | None:
+        """Open the next pending guided click: its query photo with the box, the reference photo with
+        the point to click there; None when every suggestion is done."""
+        pending = self.guide_pending()
+        if not pending:
+            self.guide_current = None
+            self._show_guide_box()
+            self._update_guide_label()
+            return None
+        self.guide_current = pending[0]
+        g = self.guide[self.guide_current]
+        refs = [r["photo"] for r in g.get("reference", [])]
+        self.set_pair(g["photo"], refs[0] if refs else None)
+        self.qview.center_on(g["x"], g["y"])
+        r = next((r for r in g.get("reference", []) if r["photo"] == self.reference), None)
+        if r is not None:
+            self.rview.center_on(r["x"], r["y"])
+        self._show_guide_box()
+        self._update_guide_label()
+        return g
+
+    def _show_guide_box(self):
+        scene = self.qview.scene()
+        if self.guide_box is not None:
+            scene.removeItem(self.guide_box)
+            self.guide_box = None
+        g = self.guide[self.guide_current] if self.guide_current is not None else None
+        if g is None or g["photo"] != self.query:
+            return
+        x0, y0, x1, y1 = g["box"]
+        self.guide_box = QGraphicsRectItem(QRectF(x0, y0, x1 - x0, y1 - y0))
+        pen = QPen(QColor(80, 255, 120), 2.0, Qt.PenStyle.DashLine)
+        pen.setCosmetic(True)
+        self.guide_box.setPen(pen)
+        self.guide_box.setZValue(4)
+        scene.addItem(self.guide_box)
+
+    def _update_guide_label(self):
+        if not self.guide:
+            self.guide_label.setText("")
+            return
+        pending = self.guide_pending()
+        if not pending:
+            self.guide_label.setText("Guided clicks: all done; run `gtkit register` for the next ones")
+            return
+        i = self.guide_current if self.guide_current in pending else pending[0]
+        g = self.guide[i]
+        ref = ", ".join(f"{r['photo']} ({r['x']:.0f}, {r['y']:.0f})" for r in g.get("reference", [])[:2])
+        self.guide_label.setText(
+            f"Next guided click ({len(pending)} left): {g['sequence']}, {g['photo']} around ({g['x']:.0f}, {g['y']:.0f})"
+            + (f"; the same point in {ref}" if ref else "")
+            + (f". Expected sigma {g['sigma_before_m']:.3f} -> {g['sigma_after_m']:.3f} m" if g.get("sigma_after_m") else ""))
 
     # --- display -------------------------------------------------------------------------------
     def _label(self, tp_id: str) -> str:
@@ -338,6 +425,13 @@ class TiePointPage(QWidget):
                     view.set_marker(key, x, y, "suggestion_current" if i == self.suggestion_index else "suggestion",
                                     f"s{i}" if i == self.suggestion_index else "")
                     keep.add(key)
+                g = self.guide[self.guide_current] if self.guide_current is not None else None
+                if g is not None:
+                    pts = [(g["photo"], g["x"], g["y"])] + [(r["photo"], r["x"], r["y"]) for r in g.get("reference", [])]
+                    for name, x, y in pts:
+                        if name == image:
+                            view.set_marker("g:next", x, y, "suggestion", "next click", movable=False)
+                            keep.add("g:next")
             for k in list(view.markers):
                 if k not in keep:
                     view.remove_marker(k)
@@ -400,3 +494,26 @@ class TiePointPage(QWidget):
         if st.get("active") and self.store.get(st["active"]):
             self.active = st["active"]
             self.refresh()
+
+
+def read_guidance(paths) -> list[dict]:
+    """The guided clicks of ``work/register/guided_clicks.json`` in the order to click them: the
+    sequences farthest above their target first, each sequence's suggestions in its order, each
+    with its ``sequence`` and the sigma before it (``sigma_before_m``). Empty without the file."""
+    f = paths.stage("register") / GUIDANCE_FILE
+    if not f.is_file():
+        return []
+    try:
+        seqs = json.loads(f.read_text())["sequences"]
+    except (ValueError, KeyError) as e:
+        log.warning("%s unreadable (%s): no guided clicks shown", f, e)
+        return []
+    out = []
+    for q, g in sorted(seqs.items(), key=lambda kv: -(kv[1].get("sigma_m") or 0.0) + (kv[1].get("target_m") or 0.0)):
+        before = g.get("sigma_m")
+        for s in g.get("suggestions", []):
+            if "x" not in s:     # an unregistered sequence: photos to start in, no point yet
+                continue
+            out.append({**s, "sequence": q, "sigma_before_m": before})
+            before = s.get("sigma_after_m", before)
+    return out
