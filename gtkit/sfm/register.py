@@ -87,7 +87,8 @@ class BootstrapSettings:
     # GPS position, on up to ``search_photos`` photos of the sequence until one matches
     search_photos: int = 3
     search_yaw_step_deg: float = 20.0
-    search_pitches_deg: list = field(default_factory=lambda: [-25.0, -45.0, -65.0])
+    # (nadir last: a mapping flight's photos held out of it, when the oblique attitudes found nothing)
+    search_pitches_deg: list = field(default_factory=lambda: [-25.0, -45.0, -65.0, -90.0])
 
 
 @dataclass
