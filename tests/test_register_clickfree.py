@@ -174,3 +174,34 @@ def test_a_sequence_whose_sfm_made_no_model_is_registered_photo_by_photo(no_clic
     assert np.median(pos) <= np.median(pos_alone) + 0.01, (pos, pos_alone)
     assert cli(["register", str(root), "--force"]) == 0
     assert "single photos (its SfM made no model)" in capsys.readouterr().out
+
+
+def test_a_clicked_sim3_on_few_clicks_or_one_photo_is_checked_against_the_automatic_matches():
+    """A clicked Sim(3) that rests on fewer than 8 inlier tie points, or on tie points all in one
+    photo, is checked against where the photos' automatic matches put the block (``register.run``
+    then prefers the automatic placement when the two are more than ``agree_m`` apart). Small seed 13
+    with the sample's first 4 clicks of seq1 (all in one photo, one grossly wrong): the clicks alone
+    put seq1 115.7 m off; checked, it is placed by its automatic matches at 0.056 m."""
+    import pycolmap
+
+    from gtkit.sfm.register import BootstrapSettings, TieStatus, sim3_disagreement, weak_click_support
+
+    b = BootstrapSettings()
+
+    def st(k, photo):
+        return TieStatus(f"tp{k}", inlier=True, query_used=[photo])
+
+    assert weak_click_support([st(k, f"queries/s/{k % 3}.jpg") for k in range(12)], b) is None
+    assert weak_click_support([st(k, "queries/s/0.jpg") for k in range(12)], b) == "12 tie points, all in one photo"
+    assert weak_click_support([st(k, f"queries/s/{k}.jpg") for k in range(4)], b) == "4 tie points"
+    assert weak_click_support([st(k, "queries/s/0.jpg") for k in range(4)], BootstrapSettings(check_clicks_below=0)) is None
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=100, height=100, params=[100, 100, 50, 50],
+                                                    camera_id=1))
+    for k in range(3):
+        im = pycolmap.Image(name=f"{k}.jpg", keypoints=np.zeros((0, 2)), camera_id=1, image_id=k + 1)
+        rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([k * 10.0, 0.0, 0.0])))
+    ident = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), np.zeros(3))
+    moved = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), np.array([25.0, 0.0, 0.0]))
+    assert sim3_disagreement(ident, ident, rec) == 0.0
+    assert abs(sim3_disagreement(ident, moved, rec) - 25.0) < 1e-9

@@ -58,7 +58,7 @@ from .guided_clicks import (COVARIANCE_FILE, GUIDANCE_FILE, GuidanceSettings, gu
 from .resect import candidate_priors, resect_sequence
 from .extend_reference import ExtendSettings, extension_ties
 from .tie_surface import SmoothSurfaceSettings, smooth_surface_filter
-from .geometry import (RegistrationError, model_cameras, model_poses, robust_sim3, triangulate_clicks,
+from .geometry import (RegistrationError, model_cameras, model_poses, robust_sim3, sim3_apply, triangulate_clicks,
                        triangulate_many)
 
 log = logging.getLogger(__name__)
@@ -89,6 +89,11 @@ class BootstrapSettings:
     search_yaw_step_deg: float = 20.0
     # (nadir last: a mapping flight's photos held out of it, when the oblique attitudes found nothing)
     search_pitches_deg: list = field(default_factory=lambda: [-25.0, -45.0, -65.0, -90.0])
+    # a clicked Sim(3) with fewer inlier tie points than this, or with all of them in one photo, is
+    # checked against the photos' automatic matches (where they place the block): farther than
+    # ``agree_m`` apart, the automatic placement wins and the report says so (small seed 13: its first
+    # 4 clicks, all in one photo, one of them grossly wrong, put seq1 116 m off; checked: 0.056 m). 0: off
+    check_clicks_below: int = 8
 
 
 @dataclass
@@ -445,6 +450,28 @@ def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: R
         out.reason = (f"{n_matched} of {len(names)} photos matched the reference points, but only {len(ok)} agree on "
                       f"one Sim(3) ({b.min_photos} needed)")
     return out
+
+
+def weak_click_support(st: list[TieStatus], b: BootstrapSettings) -> str | None:
+    """Why a clicked Sim(3) rests on too little to go unchecked (fewer than ``b.check_clicks_below``
+    inlier tie points, or all of them in one query photo), else None. 0 turns the check off."""
+    if b.check_clicks_below <= 0:
+        return None
+    inl = [s for s in st if s.inlier]
+    photos = {n for s in inl for n in s.query_used}
+    if len(inl) < b.check_clicks_below:
+        return f"{len(inl)} tie points"
+    if len(photos) < 2:
+        return f"{len(inl)} tie points, all in one photo"
+    return None
+
+
+def sim3_disagreement(a: pycolmap.Sim3d, b: pycolmap.Sim3d, block: pycolmap.Reconstruction) -> float:
+    """Median distance (m) between the block's camera centres moved by ``a`` and by ``b``."""
+    C = np.array([im.projection_center() for im in block.images.values() if im.has_pose]).reshape(-1, 3)
+    if not len(C):
+        return 0.0
+    return float(np.median(np.linalg.norm(sim3_apply(a, C) - sim3_apply(b, C), axis=1)))
 
 
 def _sim3_from_poses(block: list[Pose], ref: list[Pose], fallback_scale: float | None) -> pycolmap.Sim3d | None:
@@ -1046,12 +1073,23 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             continue
         qrec = pycolmap.Reconstruction(d)
         n_clicked = sum(1 for tp in tiepoints if tp.in_block(f"queries/{seq}/"))
+        check = None
         try:
             sim, st = register_sequence(seq, qrec, ref_rec, tiepoints, settings, ref_cache)
             boot = None
+            weak = weak_click_support(st, settings.bootstrap)
+            if weak:   # a few clicks, or all in one photo: one gross mistake among them moves the block
+                check = bootstrap(seq, qrec)
+                if check.sim is not None:
+                    shift = sim3_disagreement(sim, check.sim, qrec)
+                    if shift > settings.bootstrap.agree_m:
+                        raise RegistrationError(
+                            f"its clicks ({weak}) place it {shift:.1f} m from where "
+                            f"{check.record()['n_photos_agreeing']} of its photos' automatic matches agree to put it: "
+                            "placed by the automatic matches (check its clicks)")
         except RegistrationError as e:
             clicks_why = str(e) if n_clicked else "no clicked tie points"
-            boot = bootstrap(seq, qrec)
+            boot = check if check is not None and check.sim is not None else bootstrap(seq, qrec)
             if boot.sim is None:
                 err = (f"{clicks_why}; automatic matches: {boot.reason}; "
                        f"click 3 or more tie points in its photos (queries/{seq}/) and the reference photos "
