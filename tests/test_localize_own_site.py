@@ -136,6 +136,10 @@ def test_grid_heights_follow_a_low_flight(tmp_path):
     assert s.heights == (71.0, 141.0) and s.paper_pitches == database.PAPER_GRID["paper_pitches"]
     assert info["source"]["paper_pitches"] == "default (no gimbal angles)"
     assert height_levels([50] * 5 + [200] * 5) == (71.0, 141.0) and pitch_levels([20] * 5 + [75] * 5) == (20.0, 48.0, 75.0)
+    # consumer GPS: a flight whose altitudes sit metres above the ground (small seed 15 made consumer:
+    # 5-134 m, median 51 m) does not pull the lowest level down to a few metres
+    seed15 = [5.1, 5.5, 6.0, 7.0, 8.0] + [40.0 + 4 * k for k in range(13)] + [110.0, 120.0, 134.1, 100.0, 95.0]
+    assert min(height_levels(seed15)) >= np.median(seed15) / 2.5 - 0.5 and len(height_levels(seed15)) <= 3
     # no GPS: the paper's heights
     p3 = _flight(tmp_path / "nogps", [45.0], pitch=-50.0)
     for f in p3.paths.query_images.rglob("*.jpg"):
