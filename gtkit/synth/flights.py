@@ -113,6 +113,7 @@ def query_shots(world: World, tracks: dict[str, Track], s: SynthSettings, rng: n
                 P = tracks[seq.follow].position(t, world)
             phi = phi0 + np.radians(seq.orbit_deg_per_s) * (t - seq.start_s)
             C = P + [d * np.cos(phi), d * np.sin(phi), seq.height_agl]
+            C[2] = max(C[2], world.obstacle_top(C[0], C[1], q.clearance_radius_m) + q.clearance_m)
             if manual:
                 # a manual shot: the pilot looks somewhere else on the site
                 aim = np.array([*(C[:2] + rng.uniform(-0.5, 0.5, 2) * 2 * d), 0.0])

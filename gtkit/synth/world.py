@@ -65,6 +65,21 @@ class World:
             z = z * (1 - w) + level * w
         return z
 
+    def obstacle_top(self, x: float, y: float, radius: float) -> float:
+        """Highest building or tree top within ``radius`` horizontally of (x, y); -inf if none."""
+        top = -np.inf
+        for b in self.buildings:
+            c, s = np.cos(b.angle), np.sin(b.angle)
+            lx, ly = c * (x - b.cx) + s * (y - b.cy), -s * (x - b.cx) + c * (y - b.cy)
+            if np.hypot(max(abs(lx) - b.w / 2, 0.0), max(abs(ly) - b.d / 2, 0.0)) <= radius:
+                top = max(top, max(float(v[:, 2].max()) for v, _uv, _m in building_faces(b)))
+        if self.trees is not None and len(self.trees):
+            t = self.trees
+            near = np.hypot(t[:, 0] - x, t[:, 1] - y) - np.maximum(t[:, 3], t[:, 4]) <= radius
+            if near.any():
+                top = max(top, float((t[near, 2] + t[near, 5]).max()))
+        return top
+
     def in_lake(self, x, y, margin: float = 1.0) -> np.ndarray:
         if self.lake is None:
             return np.zeros(np.shape(x), bool)
