@@ -254,18 +254,16 @@ def table(rows: list[dict]) -> str:
                    + " | ".join(fmt(worst(col('loc_recall', i), min), pct=True) for i in range(3))
                    + f" | {fmt(worst(col('loc_r1'), min), pct=True)} | {fmt(worst(col('loc_median_m'), max))} | "
                      f"{fmt(worst(col('track_3d_m'), max), 2)} | {sum(r['track_failed'] or 0 for r in ok)} lost | | |")
+        pooled = [q for r in ok for q in r["loc_queries"]]
+        out.append(f"| **pooled** ({len(pooled)} queries) | | | | "
+                   + " | ".join(fmt(recall(pooled, m, d), pct=True) for m, d in THRESHOLDS) + " |" + " |" * 6)
         two = [r["pgt_2sigma"] for r in ok if r.get("pgt_2sigma") and r["pgt_2sigma"][0] is not None]
         if two:
             n = sum(t[2] for t in two)
             share = [sum(t[i] * t[2] for t in two if t[i] is not None) / max(n, 1) for i in (0, 1)]
-            note = (f"pseudo-GT photos within 2 sigma, pooled over {n}: {fmt(share[0], pct=True)} % (radius), "
-                    f"{fmt(share[1], pct=True)} % (ellipsoid); per seed {fmt(min(t[0] for t in two), pct=True)}"
-                    f"-{fmt(max(t[0] for t in two), pct=True)} %")
-        pooled = [q for r in ok for q in r["loc_queries"]]
-        out.append(f"| **pooled** ({len(pooled)} queries) | | | | "
-                   + " | ".join(fmt(recall(pooled, m, d), pct=True) for m, d in THRESHOLDS) + " |" + " |" * 6)
-        if two:
-            out += ["", note]
+            out += ["", f"pseudo-GT photos within 2 sigma, pooled over {n}: {fmt(share[0], pct=True)} % (radius), "
+                        f"{fmt(share[1], pct=True)} % (ellipsoid); per seed {fmt(min(t[0] for t in two), pct=True)}"
+                        f"-{fmt(max(t[0] for t in two), pct=True)} %"]
     return "\n".join(out)
 
 

@@ -141,8 +141,6 @@ def gravity_pnp_ransac(uv: np.ndarray, X: np.ndarray, camera: Camera, gravity_pr
     need = max(s.gravity_relaxed_min_inliers, int(np.ceil(s.gravity_relaxed_min_share * res.n_matches)))
     if r2.ok and r2.n_inliers >= need:
         r2.gravity_relaxed = True
-        r2.n_hypotheses += res.n_hypotheses
-        r2.iterations += res.iterations
         return r2
     found = r2.reason if not r2.ok else f"{r2.n_inliers} inliers, fewer than the {need} it needs"
     res.reason += f"; with the gravity gate at {relaxed:g} deg: {found}"
