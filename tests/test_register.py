@@ -316,23 +316,47 @@ def test_systematic_swing_moves_the_centre_sideways_by_depth_times_tilt_and_keep
     assert np.sqrt(np.mean(np.square(turned))) == pytest.approx(np.sqrt(2) * tilt, rel=0.15)
 
 
+def _pose_at(c: np.ndarray, R: np.ndarray, sigma_c: float) -> Pose:
+    """A camera at centre ``c`` whose covariance is ``sigma_c`` m on the centre (isotropic) alone."""
+    t = -R @ c
+    cov = np.zeros((6, 6))
+    cov[3:, 3:] = R @ (np.eye(3) * sigma_c ** 2 / 3) @ R.T   # dt = -R dC (rotation held)
+    return Pose(R, t, cov)
+
+
 def test_rough_surface_ties_are_dropped_only_for_the_sequences_they_bias():
     """choose_smooth: a sequence whose two solutions (all ties / smooth-surface ties only) differ by
     no more than their difference's spread if both were unbiased keeps all ties (they only add
-    precision); one that moved by several times that spread drops the rough ones (they were biased)."""
+    precision); one that moved by several times that spread drops the rough ones (they were biased),
+    tested on the camera centre and on what the camera sees."""
+    from scipy.spatial.transform import Rotation
     rng = np.random.default_rng(0)
     sa, ss = 0.03, 0.05                  # sigma with all ties, with the smooth ones only
     spread = np.sqrt(ss ** 2 - sa ** 2)  # 0.04 m
     all_ties, smooth = {}, {}
     for q, shift in (("seqA", 0.0), ("seqB", 0.25)):   # seqB: the rough ties pulled it 25 cm
         for k in range(12):
-            c = rng.normal(size=3) * 10
+            c = rng.normal(size=3) * 10 + np.array([0.0, 0.0, 100.0])
+            R = dji_to_rotation(rng.uniform(0, 360), -45.0, 0.0)
             n = f"queries/{q}/{k:04d}_W.jpg"
-            all_ties[n] = (c + np.array([shift, 0.0, 0.0]) + rng.normal(size=3) * spread / np.sqrt(3), sa)
-            smooth[n] = (c, ss)
-    got = register.choose_smooth(all_ties, smooth, 2.0)
-    assert not got["seqA"]["smooth_only"] and got["seqB"]["smooth_only"], got
-    assert got["seqA"]["limit_m"] == pytest.approx(2 * spread)
+            moved = c + np.array([shift, 0.0, 0.0]) + rng.normal(size=3) * spread / np.sqrt(3)
+            all_ties[n] = (_pose_at(moved, R, sa), 104.0)
+            smooth[n] = (_pose_at(c, R, ss), 104.0)
+    for on in ("centre", "footprint"):
+        got = register.choose_smooth(all_ties, smooth, 2.0, on)
+        assert not got["seqA"]["smooth_only"] and got["seqB"]["smooth_only"], got
+        assert got["seqA"]["limit_m"] == pytest.approx(2 * spread)
+    # a camera that swings about the ground it sees (turned 0.1 deg about that point: its centre
+    # moves 18 cm, its view not at all) is no bias on its footprint, but it was on its centre
+    swung = {}
+    for n, (p, depth) in all_ties.items():
+        X = p.center + p.R.T @ np.array([0.0, 0.0, depth])
+        dR = Rotation.from_rotvec(np.radians(0.1) * np.array([0.0, 1.0, 0.0])).as_matrix()
+        R2 = p.R @ dR
+        swung[n] = (_pose_at(X - R2.T @ np.array([0.0, 0.0, depth]), R2, ss), depth)
+    assert register.choose_smooth(all_ties, swung, 2.0, "centre")["seqA"]["smooth_only"]
+    got = register.choose_smooth(all_ties, swung, 2.0, "footprint")["seqA"]
+    assert not got["smooth_only"] and got["shift_m"] < 1e-6, got
     # the rough ties' clicks leave only the chosen sequences' photos
     clicks = {"auto_1": {"reference/R1.jpg": (1, 2), "queries/seqA/0001_W.jpg": (3, 4), "queries/seqB/0001_W.jpg": (5, 6)},
               "auto_2": {"reference/R1.jpg": (1, 2), "queries/seqB/0002_W.jpg": (7, 8)},

@@ -794,14 +794,13 @@ def _without(clicks: dict, ties: set[str], seqs: set[str]) -> dict:
     return out
 
 
-def _centres_sigmas(j: Joint, cov) -> dict[str, tuple[np.ndarray, float | None]]:
-    """Query photo -> (camera centre, the BA's position sigma or None)."""
+def _solution(j: Joint, cov) -> dict[str, tuple[Pose, float]]:
+    """Query photo -> (its pose with the BA's covariance, the median depth of the points it sees)."""
     out = {}
     for iid in j.rec.reg_image_ids():
         if iid in j.ref_ids:
             continue
-        pose = _ba_pose(j.rec, cov, iid)
-        out[j.rec.images[iid].name] = (pose.center, _position_sigma(pose))
+        out[j.rec.images[iid].name] = (_ba_pose(j.rec, cov, iid), _median_depth(j.rec, j.rec.images[iid]))
     return out
 
 
@@ -823,25 +822,53 @@ def _ba_pose(rec, cov, iid: int) -> Pose:
     return Pose.from_pycolmap(rec.images[iid].cam_from_world(), c if ok else None)
 
 
-def choose_smooth(all_ties: dict, smooth_only: dict, factor: float) -> dict[str, dict]:
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def solution_shift(a: tuple[Pose, float], s: tuple[Pose, float], on: str) -> tuple[float, float | None, float | None]:
+    """How far one photo moved between two solutions ``a`` and ``s`` (each: pose with covariance,
+    median depth), and each solution's 1-sigma of that quantity (None without a covariance):
+    - ``"centre"``: the camera centre;
+    - ``"footprint"``: what the camera sees, the ground point on its optical axis at its median
+      depth (fixed in the world by solution ``a``) in the camera's frame. A camera that swings about
+      the ground it sees (rotation and position trading off, a mode the photo's own rays barely
+      hold) moves its centre but not this; biased ties, which shift the image, move both."""
+    (pa, depth), (ps, _) = a, s
+    if on == "centre":
+        return float(np.linalg.norm(pa.center - ps.center)), _position_sigma(pa), _position_sigma(ps)
+    X = pa.center + pa.R.T @ np.array([0.0, 0.0, depth])
+
+    def sigma(p: Pose) -> float | None:
+        if p.covariance is None:
+            return None
+        J = np.hstack([-_skew(p.R @ X), np.eye(3)])   # d(R X + t) under R' = exp(dr) R, t' = t + dt
+        return float(np.sqrt(np.trace(J @ p.covariance @ J.T)))
+
+    return float(np.linalg.norm(pa.transform(X[None])[0] - ps.transform(X[None])[0])), sigma(pa), sigma(ps)
+
+
+def choose_smooth(all_ties: dict, smooth_only: dict, factor: float, on: str = "footprint") -> dict[str, dict]:
     """Per sequence, whether its rough-surface automatic ties are biased: the two solutions (all ties,
     smooth-surface ties only) differ by more than ``factor`` x the spread their difference would have
     if both were unbiased, sqrt(sigma_smooth^2 - sigma_all^2) (a Hausman test; medians over the
-    sequence's photos). Inputs: photo -> (centre, sigma) of each solution."""
+    sequence's photos) in what ``on`` measures (:func:`solution_shift`). Inputs: photo -> (pose with
+    covariance, median depth) of each solution."""
     seqs: dict[str, list[str]] = {}
     for n in all_ties:
         if n in smooth_only:
             seqs.setdefault(n.split("/")[1], []).append(n)
     out = {}
     for q, names in sorted(seqs.items()):
-        d = float(np.median([np.linalg.norm(all_ties[n][0] - smooth_only[n][0]) for n in names]))
-        sa = [all_ties[n][1] for n in names if all_ties[n][1] is not None]
-        ss = [smooth_only[n][1] for n in names if smooth_only[n][1] is not None]
+        shifts = [solution_shift(all_ties[n], smooth_only[n], on) for n in names]
+        d = float(np.median([x[0] for x in shifts]))
+        sa = [x[1] for x in shifts if x[1] is not None]
+        ss = [x[2] for x in shifts if x[2] is not None]
         if not sa or not ss:
-            out[q] = {"smooth_only": True, "shift_m": d, "limit_m": None}
+            out[q] = {"smooth_only": True, "shift_m": d, "limit_m": None, "on": on}
             continue
         spread = float(np.sqrt(max(np.median(ss) ** 2 - np.median(sa) ** 2, 0.0)))
-        out[q] = {"smooth_only": bool(d > factor * spread), "shift_m": d, "limit_m": factor * spread}
+        out[q] = {"smooth_only": bool(d > factor * spread), "shift_m": d, "limit_m": factor * spread, "on": on}
     return out
 
 
@@ -857,12 +884,13 @@ def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str
         return (*_adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings), {})
     a = _adjust(ref_rec, blocks, statuses, clicks, auto, settings)
     s = _adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings)
-    choice = choose_smooth(_centres_sigmas(a[0], a[2]), _centres_sigmas(s[0], s[2]), settings.smooth_surface.test_factor)
+    choice = choose_smooth(_solution(a[0], a[2]), _solution(s[0], s[2]), settings.smooth_surface.test_factor,
+                           settings.smooth_surface.test_on)
     picked = {q for q, c in choice.items() if c["smooth_only"]}
     for q, c in choice.items():
-        log.info("sequence %s: %s (the two solutions %.3f m apart, limit %s m)", q,
+        log.info("sequence %s: %s (the two solutions' %s %.3f m apart, limit %s m)", q,
                  "automatic ties on smooth surface only" if c["smooth_only"] else "all automatic ties",
-                 c["shift_m"], "-" if c["limit_m"] is None else f"{c['limit_m']:.3f}")
+                 c["on"], c["shift_m"], "-" if c["limit_m"] is None else f"{c['limit_m']:.3f}")
     if not picked:
         return (*a, choice)
     if picked >= set(choice):
@@ -884,6 +912,9 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     if settings.smooth_surface.choose not in ("test", "smooth"):
         raise GtkitError(f'[register.smooth_surface] choose = "{settings.smooth_surface.choose}": '
                          'expected "test" or "smooth"', project.paths.root / PROJECT_FILE)
+    if settings.smooth_surface.test_on not in ("footprint", "centre"):
+        raise GtkitError(f'[register.smooth_surface] test_on = "{settings.smooth_surface.test_on}": '
+                         'expected "footprint" or "centre"', project.paths.root / PROJECT_FILE)
     out = P.stage(STAGE)
     ref_dir = P.stage(REFERENCE_STAGE) / "model"
     if not ref_dir.is_dir():
