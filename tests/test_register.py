@@ -342,7 +342,7 @@ def test_rough_surface_ties_are_dropped_only_for_the_sequences_they_bias():
             moved = c + np.array([shift, 0.0, 0.0]) + rng.normal(size=3) * spread / np.sqrt(3)
             all_ties[n] = (_pose_at(moved, R, sa), 104.0)
             smooth[n] = (_pose_at(c, R, ss), 104.0)
-    for on in ("centre", "footprint"):
+    for on in ("centre", "footprint", "both"):
         got = register.choose_smooth(all_ties, smooth, 2.0, on)
         assert not got["seqA"]["smooth_only"] and got["seqB"]["smooth_only"], got
         assert got["seqA"]["limit_m"] == pytest.approx(2 * spread)
@@ -357,6 +357,8 @@ def test_rough_surface_ties_are_dropped_only_for_the_sequences_they_bias():
     assert register.choose_smooth(all_ties, swung, 2.0, "centre")["seqA"]["smooth_only"]
     got = register.choose_smooth(all_ties, swung, 2.0, "footprint")["seqA"]
     assert not got["smooth_only"] and got["shift_m"] < 1e-6, got
+    got = register.choose_smooth(all_ties, swung, 2.0, "both")["seqA"]   # the default
+    assert not got["smooth_only"] and got["centre_shift_m"] > got["centre_limit_m"], got
     # the rough ties' clicks leave only the chosen sequences' photos
     clicks = {"auto_1": {"reference/R1.jpg": (1, 2), "queries/seqA/0001_W.jpg": (3, 4), "queries/seqB/0001_W.jpg": (5, 6)},
               "auto_2": {"reference/R1.jpg": (1, 2), "queries/seqB/0002_W.jpg": (7, 8)},

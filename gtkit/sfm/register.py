@@ -848,12 +848,17 @@ def solution_shift(a: tuple[Pose, float], s: tuple[Pose, float], on: str) -> tup
     return float(np.linalg.norm(pa.transform(X[None])[0] - ps.transform(X[None])[0])), sigma(pa), sigma(ps)
 
 
-def choose_smooth(all_ties: dict, smooth_only: dict, factor: float, on: str = "footprint") -> dict[str, dict]:
+def choose_smooth(all_ties: dict, smooth_only: dict, factor: float, on: str = "both") -> dict[str, dict]:
     """Per sequence, whether its rough-surface automatic ties are biased: the two solutions (all ties,
     smooth-surface ties only) differ by more than ``factor`` x the spread their difference would have
     if both were unbiased, sqrt(sigma_smooth^2 - sigma_all^2) (a Hausman test; medians over the
-    sequence's photos) in what ``on`` measures (:func:`solution_shift`). Inputs: photo -> (pose with
-    covariance, median depth) of each solution."""
+    sequence's photos) in what ``on`` measures (:func:`solution_shift`: "centre" or "footprint"), or
+    in both (``"both"``: biased ties move the camera and its view; a camera swinging about its view
+    moves only the first). Inputs: photo -> (pose with covariance, median depth) of each solution."""
+    if on == "both":
+        c, f = choose_smooth(all_ties, smooth_only, factor, "centre"), choose_smooth(all_ties, smooth_only, factor, "footprint")
+        return {q: {**f[q], "smooth_only": c[q]["smooth_only"] and f[q]["smooth_only"], "on": "both",
+                    "centre_shift_m": c[q]["shift_m"], "centre_limit_m": c[q]["limit_m"]} for q in f}
     seqs: dict[str, list[str]] = {}
     for n in all_ties:
         if n in smooth_only:
@@ -872,6 +877,17 @@ def choose_smooth(all_ties: dict, smooth_only: dict, factor: float, on: str = "f
     return out
 
 
+def _test_words(c: dict) -> str:
+    """One sequence's smooth-surface test in words (the log line)."""
+    def lim(v):
+        return "-" if v is None else f"{v:.3f}"
+    what = "centres" if c["on"] == "centre" else "footprints"
+    words = f"the two solutions' {what} {c['shift_m']:.3f} m apart, limit {lim(c['limit_m'])} m"
+    if "centre_shift_m" in c:
+        words += f"; centres {c['centre_shift_m']:.3f} m apart, limit {lim(c['centre_limit_m'])} m"
+    return words
+
+
 def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str], rough: set[str],
                           settings: RegisterSettings):
     """The joint adjustment, with the automatic ties on rough model surface (``rough``) kept only for
@@ -888,9 +904,8 @@ def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str
                            settings.smooth_surface.test_on)
     picked = {q for q, c in choice.items() if c["smooth_only"]}
     for q, c in choice.items():
-        log.info("sequence %s: %s (the two solutions' %s %.3f m apart, limit %s m)", q,
-                 "automatic ties on smooth surface only" if c["smooth_only"] else "all automatic ties",
-                 c["on"], c["shift_m"], "-" if c["limit_m"] is None else f"{c['limit_m']:.3f}")
+        log.info("sequence %s: %s (%s)", q, "automatic ties on smooth surface only" if c["smooth_only"]
+                 else "all automatic ties", _test_words(c))
     if not picked:
         return (*a, choice)
     if picked >= set(choice):
@@ -912,9 +927,9 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
     if settings.smooth_surface.choose not in ("test", "smooth"):
         raise GtkitError(f'[register.smooth_surface] choose = "{settings.smooth_surface.choose}": '
                          'expected "test" or "smooth"', project.paths.root / PROJECT_FILE)
-    if settings.smooth_surface.test_on not in ("footprint", "centre"):
+    if settings.smooth_surface.test_on not in ("both", "footprint", "centre"):
         raise GtkitError(f'[register.smooth_surface] test_on = "{settings.smooth_surface.test_on}": '
-                         'expected "footprint" or "centre"', project.paths.root / PROJECT_FILE)
+                         'expected "both", "footprint" or "centre"', project.paths.root / PROJECT_FILE)
     out = P.stage(STAGE)
     ref_dir = P.stage(REFERENCE_STAGE) / "model"
     if not ref_dir.is_dir():
