@@ -249,7 +249,13 @@ def test_tiled_surface_and_tiled_model(built, tmp_path):
     h = np.where(both, ha, np.nan)
     edge = (maximum_filter(np.nan_to_num(h, nan=-1e9), 3) - minimum_filter(np.nan_to_num(h, nan=1e9), 3)) > 2.0
     off = both & (d >= 0.01)
-    assert np.array_equal(ha == a.nodata, hb == b.nodata) and np.median(d[both]) < 1e-4
+    # coverage: the same cells, except where a cell's centre grazes the model's outer edge (a neighbour
+    # with no data in either), which one rendering may cover and the other not (measured: 1 cell of
+    # 137,792 in one CI run of stop 40, none in others)
+    differ = (ha == a.nodata) != (hb == b.nodata)
+    on_edge = maximum_filter((ha == a.nodata) & (hb == b.nodata), 3)
+    assert np.all(on_edge[differ]) and differ.sum() <= 1e-4 * both.sum(), (differ.sum(), both.sum())
+    assert np.median(d[both]) < 1e-4
     assert np.all(edge[off]) and off.sum() <= 1e-4 * both.sum(), (off.sum(), both.sum())
     # the tiles' textures are packed per tile (write_tiled texture="pack"): database views of the tiled
     # model look like those of the OBJ. Small seed 13 cut into 60 m tiles from its OBJ: mean 0.04 grey
