@@ -54,6 +54,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from gtkit.io.poses import read_poses  # noqa: E402
+from gtkit.sfm.register import tie_test_words  # noqa: E402
 
 RERUN = {  # stage -> work folders (and reports) removed so the stage runs again
     "localize": ["work/render_db", "work/localize_db", "work/localize", "work/track", "reports/localization.json"],
@@ -202,7 +203,7 @@ def pgt_failures(proj: Path) -> list[dict]:
         elif np.linalg.norm(off) >= 0.5 * med:
             cause = "biased automatic ties" if auto >= clicked else "biased clicked ties"
             t = tests.get(q)
-            why.append(f"smooth-surface test: shift {t['shift_m']:.3f} m, limit {fmt(t['limit_m'])} m, "
+            why.append(f"smooth-surface test: {tie_test_words(t)}, "
                        f"{'smooth-surface ties only' if t['smooth_only'] else 'all ties'}" if t else
                        "no smooth-surface test (no ties off smooth surface)")
         else:

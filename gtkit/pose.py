@@ -10,6 +10,11 @@ from .conventions import (camera_center, dji_to_rotation, quat_to_rotmat, rotati
 from .errors import GtkitError
 
 
+def skew(v) -> np.ndarray:
+    """The cross-product matrix: ``skew(a) @ b == np.cross(a, b)``."""
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=np.float64)
+
+
 @dataclass(frozen=True, eq=False)
 class Pose:
     """World-to-camera rigid transform ``x_cam = R @ x_world + t``.
@@ -109,10 +114,18 @@ class Pose:
         dC = R^T (-[t]_x dr - dt). None without a covariance."""
         if self.covariance is None:
             return None
-        t = self.t
-        tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-        J = self.R.T @ np.concatenate([-tx, -np.eye(3)], axis=1)
+        J = self.center_jacobian()
         return J @ self.covariance @ J.T
+
+    def center_jacobian(self) -> np.ndarray:
+        """3x6 derivative of the camera centre with respect to the covariance's (dr, dt):
+        R^T [-[t]_x, -I] (see :meth:`center_covariance`)."""
+        return self.R.T @ np.concatenate([-skew(self.t), -np.eye(3)], axis=1)
+
+    def point_jacobian(self, X: np.ndarray) -> np.ndarray:
+        """3x6 derivative of a world point's camera-frame position ``R X + t`` with respect to the
+        covariance's (dr, dt) (left perturbation, as in :meth:`center_covariance`): [-[R X]_x, I]."""
+        return np.concatenate([-skew(self.R @ np.asarray(X, np.float64)), np.eye(3)], axis=1)
 
     def error_to(self, other: "Pose") -> tuple[float, float]:
         """(camera-centre distance in metres, rotation geodesic error in degrees)."""

@@ -69,7 +69,7 @@ class SequenceState:
     floor: np.ndarray
 
     def centre_jacobians(self) -> np.ndarray:
-        return np.array([_centre_jacobian(p) for p in self.poses])     # (N, 3, 6)
+        return np.array([p.center_jacobian() for p in self.poses])     # (N, 3, 6)
 
     def photo_sigmas(self, cov: np.ndarray | None = None) -> np.ndarray:
         """Each photo's position sigma (m): sqrt(trace of its centre covariance) + its floor."""
@@ -85,15 +85,6 @@ class SequenceState:
         """The sequence's sigma: RMS of its photos' position sigmas."""
         s = self.photo_sigmas(cov)
         return float(np.sqrt(np.mean(s ** 2))) if len(s) else float("nan")
-
-
-def _skew(v) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
-def _centre_jacobian(pose: Pose) -> np.ndarray:
-    """dC / d(dr, dt) for C = -R^T t (see :meth:`gtkit.pose.Pose.center_covariance`)."""
-    return pose.R.T @ np.concatenate([-_skew(pose.t), -np.eye(3)], axis=1)
 
 
 def _pixel_jacobian(cam: Camera, Xc: np.ndarray, h: float = 1e-4) -> np.ndarray:
@@ -113,7 +104,7 @@ def click_information(pose: Pose, cam: Camera, xyz: np.ndarray, ref_views: list[
     clicks in the fixed ``ref_views``) adds on that photo's pose, its 3-D point marginalised."""
     Xc = pose.R @ xyz + pose.t
     P = _pixel_jacobian(cam, Xc)
-    J = P @ np.concatenate([-_skew(pose.R @ xyz), np.eye(3)], axis=1) / sigma_px   # 2x6
+    J = P @ pose.point_jacobian(xyz) / sigma_px                                   # 2x6
     B = P @ pose.R / sigma_px                                                      # 2x3
     M = B.T @ B
     for rp, rc in ref_views:

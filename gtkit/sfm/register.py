@@ -45,7 +45,7 @@ from ..errors import GtkitError
 from ..io.atomic import write_json
 from ..io.poses import write_covariances, write_intrinsics, write_poses
 from ..io.tiepoints import TiePoint, read_tiepoints
-from ..pose import Pose
+from ..pose import Pose, skew
 from ..project import PROJECT_FILE, Project, file_fingerprint, mark_stage_done, stage_done, start_stage_clock
 from . import quiet_colmap
 from ..settings import resolve
@@ -146,7 +146,7 @@ def swing_covariance(t: np.ndarray, depth_m: float, focal_px: float, swing_px: f
     ``P = (0, 0, depth)``; the camera centre then moves ``depth * tilt`` sideways."""
     tilt = swing_px / focal_px
     d = np.array([0.0, 0.0, depth_m]) - np.asarray(t, np.float64)
-    J = np.vstack([np.eye(3), np.array([[0, -d[2], d[1]], [d[2], 0, -d[0]], [-d[1], d[0], 0]])])
+    J = np.vstack([np.eye(3), skew(d)])
     return J @ np.diag([tilt ** 2, tilt ** 2, 0.0]) @ J.T
 
 
@@ -822,10 +822,6 @@ def _ba_pose(rec, cov, iid: int) -> Pose:
     return Pose.from_pycolmap(rec.images[iid].cam_from_world(), c if ok else None)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
 def solution_shift(a: tuple[Pose, float], s: tuple[Pose, float], on: str) -> tuple[float, float | None, float | None]:
     """How far one photo moved between two solutions ``a`` and ``s`` (each: pose with covariance,
     median depth), and each solution's 1-sigma of that quantity (None without a covariance):
@@ -842,7 +838,7 @@ def solution_shift(a: tuple[Pose, float], s: tuple[Pose, float], on: str) -> tup
     def sigma(p: Pose) -> float | None:
         if p.covariance is None:
             return None
-        J = np.hstack([-_skew(p.R @ X), np.eye(3)])   # d(R X + t) under R' = exp(dr) R, t' = t + dt
+        J = p.point_jacobian(X)
         return float(np.sqrt(np.trace(J @ p.covariance @ J.T)))
 
     return float(np.linalg.norm(pa.transform(X[None])[0] - ps.transform(X[None])[0])), sigma(pa), sigma(ps)
@@ -877,11 +873,12 @@ def choose_smooth(all_ties: dict, smooth_only: dict, factor: float, on: str = "b
     return out
 
 
-def _test_words(c: dict) -> str:
-    """One sequence's smooth-surface test in words (the log line)."""
+def tie_test_words(c: dict) -> str:
+    """One sequence's smooth-surface test (a record of ``choose_smooth``, as in registration.json;
+    records without ``on`` predate the footprint test and compared centres) in words."""
     def lim(v):
         return "-" if v is None else f"{v:.3f}"
-    what = "centres" if c["on"] == "centre" else "footprints"
+    what = "centres" if c.get("on", "centre") == "centre" else "footprints"
     words = f"the two solutions' {what} {c['shift_m']:.3f} m apart, limit {lim(c['limit_m'])} m"
     if "centre_shift_m" in c:
         words += f"; centres {c['centre_shift_m']:.3f} m apart, limit {lim(c['centre_limit_m'])} m"
@@ -905,7 +902,7 @@ def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str
     picked = {q for q, c in choice.items() if c["smooth_only"]}
     for q, c in choice.items():
         log.info("sequence %s: %s (%s)", q, "automatic ties on smooth surface only" if c["smooth_only"]
-                 else "all automatic ties", _test_words(c))
+                 else "all automatic ties", tie_test_words(c))
     if not picked:
         return (*a, choice)
     if picked >= set(choice):
