@@ -123,23 +123,55 @@ def test_database_features_resume_after_the_process_is_killed(site, tmp_path):
     assert not parts.exists()      # the chunks folded into the feature file
     assert feature_store.stored_views(feats) == {v.name for v in db.views}
     assert localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))["db_features_views"] == 0
-    # the global descriptors: a matrix apart (.npy), memory-mapped by each worker; a cache written before
-    # it was kept apart (G inside the .npz) is converted, not recomputed
+    # the global descriptors: a matrix apart (.npy), memory-mapped by each worker; a lost matrix is
+    # made again from the kept codebook, the same
     t = localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))
     G = np.load(t["global_matrix"], mmap_mode="r")
     assert isinstance(G, np.memmap) and G.shape == (len(db.views), 64 * 128)
     with np.load(t["global"]) as z:
         assert "G" not in z.files and len(z["names"]) == len(db.views)
-        old = {k: z[k] for k in z.files}
-    np.savez(t["global"], G=np.asarray(G), **old)
     before = np.asarray(G).copy()
     del G
     os.unlink(t["global_matrix"])
     t2 = localize.prepare_database(p, db, localize.LocalizeSettings(), ExecutorSettings("serial"))
-    assert t2["db_global_s"] < 1.0 and np.array_equal(np.load(t2["global_matrix"]), before)
+    assert t2["db_features_views"] == 0 and np.array_equal(np.load(t2["global_matrix"]), before)
     ctx = localize._context({"root": str(copy), "settings": localize.settings_dict(localize.LocalizeSettings()),
                              "features": t2["features"], "global": t2["global"], "global_matrix": t2["global_matrix"]})
     assert isinstance(ctx["G"], np.memmap)
+
+
+def test_database_features_only_for_the_views_the_queries_can_reach(site, tmp_path):
+    """db_features "reachable" (the default) extracts features and global descriptors only for the
+    views some query's sensor priors can bring within its top_k x (1 + fallback_rounds): every query
+    ranks the same views, in the same order, and gets the same pose as with every view described;
+    the views it skipped are extracted when a run needs them (here: "all")."""
+    from gtkit.project import Project
+
+    copy = tmp_path / "site"
+    shutil.copytree(site, copy, ignore=shutil.ignore_patterns("localize*", "reports"))
+    s = localize.LocalizeSettings(top_k=2, fallback_rounds=1, codebook_views=24)
+    serial = ExecutorSettings("serial")
+    p = Project.load(copy)
+    db = database.load_database(p)
+    out_r = localize.run(copy, s, ablation="reachable", executor=serial)
+    rec_r = json.loads((out_r / "status.json").read_text())
+    off = rec_r["offline"]
+    assert off["db_views_total"] == len(db.views)
+    assert 0 < off["db_views_described"] < 0.8 * len(db.views)
+    assert off["db_features_views"] <= off["db_views_described"] + 24      # + the codebook's views
+    feats = localize._db_cache(p, s) / "features.h5"
+    assert len(feature_store.stored_views(feats)) == off["db_features_views"] < len(db.views)
+    out_a = localize.run(copy, replace(s, db_features="all"), ablation="all-views", executor=serial)
+    rec_a = json.loads((out_a / "status.json").read_text())
+    assert rec_a["offline"]["db_features_views"] == len(db.views) - off["db_features_views"]
+    assert rec_a["offline"]["db_views_described"] == len(db.views)
+    a = {q["name"]: q for q in rec_a["queries"]}
+    r = {q["name"]: q for q in rec_r["queries"]}
+    assert sum(q["ok"] for q in a.values()) >= 6
+    for n, q in a.items():
+        assert q.get("retrieved") == r[n].get("retrieved") and q.get("fallback_retrieved") == r[n].get("fallback_retrieved")
+        assert q.get("t") == r[n].get("t") and q.get("q") == r[n].get("q")
+        assert q["reason"] == r[n]["reason"]
 
 
 def test_local_workers_end_when_the_process_that_started_them_is_killed(tmp_path):

@@ -15,6 +15,9 @@ def register(sub):
     p.add_argument("--queries", default=None,
                    help="only the query photos matching this glob under images/, e.g. 'queries/seq1/*' (which photos "
                         "are queries: [sfm] query_pattern, default '*_W.*')")
+    p.add_argument("--db-features", choices=["reachable", "all"], default=None,
+                   help="database views to extract features for: those the queries' GPS + gimbal priors can reach "
+                        "(default; the same result) or all of them")
     _executor_args(p)
     p.add_argument("--force", action="store_true", help="recompute even when up to date")
     p.set_defaults(func=run)
@@ -29,6 +32,7 @@ def run(args):
     # the ablation's settings < project.toml [localize] < the flags given (gtkit.settings.resolve)
     project = Project.load(args.project)
     s = resolve(localize.settings_for(args.ablation), "localize", project,
-                {"top_k": args.top_k, "gps_radius_m": args.gps_radius, "query_subset": args.queries})
+                {"top_k": args.top_k, "gps_radius_m": args.gps_radius, "query_subset": args.queries,
+                 "db_features": args.db_features})
     out = localize.run(project, s, ablation=args.ablation, executor=executor_settings(args), force=args.force)
     print(f"poses: {out / 'poses.txt'}  status: {out / 'status.json'}")

@@ -34,7 +34,10 @@ or XFeat's unit 64-d ones), so the learned run extracts one set of features per 
 
 Offline parts, cached under ``work/localize_db/<extractor conf>/`` and shared by every run and
 ablation: database features (``features.h5``, one group per view), the VLAD codebook and the
-database's global descriptors.
+database's global descriptors. By default (``db_features = "reachable"``) only the views some
+query's sensor priors can bring into its ranking get features and a descriptor
+(:func:`reachable_views`; the same ranking as with every view); the rest are extracted when a later
+query can reach them.
 
 Outputs under ``work/localize/`` (or ``work/localize-<ablation>/``): ``poses.txt`` (only the
 queries that were localized; never a prior or a database pose), ``status.json`` (per query:
@@ -143,6 +146,15 @@ class LocalizeSettings:
     db_heights: tuple[float, ...] | None = None        # use only these database levels
     db_highest_only: bool = False                      # use only the highest database level
     db_paper_pitches: tuple[float, ...] | None = None  # use only these paper pitches (0 = nadir)
+    # Which database views get local features and a global descriptor: "reachable" = only the views
+    # some query's retrieval can rank within its top_k x (1 + fallback_rounds) from its sensor priors
+    # alone (:func:`reachable_views`; a query without a position prior reaches every view its
+    # rotation prior keeps), "all" = every view (the paper's offline step). The ranking of every
+    # query is the same either way (the bound is exact for unit global descriptors); the VLAD codebook
+    # is trained on a fixed spread of views (``codebook_views``) in both, so a query's result does
+    # not depend on which other queries ran.
+    db_features: str = "reachable"
+    codebook_views: int = 1500
     # Which photos are queries is [sfm] query_pattern (gtkit.queries.query_photos); this only narrows
     # them to the names matching a glob (relative to images/, e.g. "queries/seq1/*"); None = all.
     query_subset: str | None = None
@@ -258,8 +270,22 @@ def _extract_db_views(task):
     return out, time.process_time() - c0
 
 
-def prepare_database(project: Project, db: Database, s: LocalizeSettings, executor: ExecutorSettings) -> dict:
-    """Database features + VLAD codebook + global descriptors, cached; returns seconds by step."""
+def codebook_views(db: Database, n: int) -> list[str]:
+    """``n`` views spread evenly over the database's sorted view names (level by level, position by
+    position): the views the VLAD codebook is trained on, the same whichever queries run."""
+    names = sorted(v.name for v in db.views)
+    if len(names) <= n:
+        return names
+    return [names[i] for i in np.unique(np.round(np.linspace(0, len(names) - 1, n)).astype(int))]
+
+
+def prepare_database(project: Project, db: Database, s: LocalizeSettings, executor: ExecutorSettings,
+                     views: set[str] | None = None) -> dict:
+    """Database features + VLAD codebook + global descriptors, cached; returns seconds by step.
+
+    ``views``: the views that need a global descriptor (None = every view of ``db``); features are
+    extracted for those and for the codebook's views (:func:`codebook_views`), and kept in the feature
+    store, so a later run extracts only views it has not seen."""
     import h5py
 
     from . import feature_store
@@ -270,8 +296,11 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
     feats = cache / "features.h5"
     times = {}
     t0 = time.perf_counter()
+    described = sorted(v.name for v in db.views) if views is None else sorted(views)
+    train = codebook_views(db, s.codebook_views)
+    wanted = set(described) | set(train)
     done = feature_store.stored_views(feats)   # the feature file + the chunks a killed run finished
-    todo = [v for v in db.views if v.name not in done]
+    todo = [v for v in db.views if v.name in wanted and v.name not in done]
     c0, worker_cpu = time.process_time(), 0.0
     if todo:
         ex = make_executor(executor)
@@ -290,45 +319,48 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
     feature_store.merge_parts(feats)
     times["db_features_s"] = time.perf_counter() - t0
     times["db_features_views"] = len(todo)
+    times["db_views_described"] = len(described)
+    times["db_views_total"] = len(db.views)
     # CPU seconds: this process (all its threads) + what each chunk took in its worker (worker
     # start-up not counted; the stage's cost record counts it for local processes)
     times["db_features_cpu_s"] = time.process_time() - c0 + worker_cpu
-    times["db_features_kb_per_view"] = feats.stat().st_size / 1024 / max(1, len(db.views)) if feats.is_file() else None
-    # codebook + global descriptors (keyed by the full database view list)
+    times["db_features_kb_per_view"] = (feats.stat().st_size / 1024 / max(1, len(feature_store.stored_views(feats)))
+                                        if feats.is_file() else None)
     t0, c0 = time.perf_counter(), time.process_time()
-    names = sorted(v.name for v in db.views)
-    gkey = settings_key({"names": names, "words": s.vlad_words, "desc": s.descriptor})
+    # the codebook (keyed by its training views), then the global descriptors of the described views
+    # (keyed by the codebook and their names)
+    ckey = settings_key({"names": train, "words": s.vlad_words, "desc": s.descriptor})
+    cfile = cache / f"codebook-{s.descriptor}{s.vlad_words}-{ckey[:8]}.npy"
+    if cfile.is_file():
+        vlad = Vlad.load(cfile)
+    else:
+        with h5py.File(feats, "r") as h5:
+            rng = np.random.default_rng(0)
+            per = max(50, 200_000 // max(1, len(train)))
+            sample = []
+            for n in train:
+                d = h5[n]["desc"][()]
+                if len(d):
+                    sample.append(d[rng.choice(len(d), min(per, len(d)), replace=False)])
+        if not sample:
+            raise GtkitError("database views have no features (textureless model?)", feats)
+        vlad = Vlad.train(np.concatenate(sample), k=s.vlad_words)
+        vlad.save(cfile)
+    gkey = settings_key({"codebook": ckey, "names": described})
     gfile = cache / f"global-{s.descriptor}{s.vlad_words}-{gkey[:8]}.npz"
     # the descriptor matrix (views x words x 128 float32: 32 KB a view at 64 words, 0.85 GB for 26k
     # views) is kept apart as .npy, memory-mapped by every worker (one copy in the page cache, not one
     # a worker); the .npz (codebook, names) is written last and marks the pair complete
     gmat = gfile.with_name(gfile.stem + "-G.npy")
-    if gfile.is_file() and not gmat.is_file():          # a cache from before the matrix was kept apart
-        with np.load(gfile) as z:
-            G = z["G"] if "G" in z.files else None
-        if G is None:
-            gfile.unlink()
-        else:
-            with atomic_path(gmat) as tmp, open(tmp, "wb") as f:
-                np.save(f, G)
-    if not gfile.is_file():
+    if not (gfile.is_file() and gmat.is_file()):
         with h5py.File(feats, "r") as h5:
-            rng = np.random.default_rng(0)
-            per = max(50, 200_000 // max(1, len(names)))
-            sample = []
-            for n in names:
-                d = h5[n]["desc"][()]
-                if len(d):
-                    sample.append(d[rng.choice(len(d), min(per, len(d)), replace=False)])
-            if not sample:
-                raise GtkitError("database views have no features (textureless model?)", feats)
-            vlad = Vlad.train(np.concatenate(sample), k=s.vlad_words)
-            G = np.concatenate([vlad.describe_many([h5[n]["desc"][()] for n in names[i:i + 64]])
-                                for i in range(0, len(names), 64)]).astype(np.float32)
+            G = (np.concatenate([vlad.describe_many([h5[n]["desc"][()] for n in described[i:i + 64]])
+                                 for i in range(0, len(described), 64)]).astype(np.float32)
+                 if described else np.zeros((0, vlad.dim), np.float32))
         with atomic_path(gmat) as tmp, open(tmp, "wb") as f:
             np.save(f, G)
         with atomic_path(gfile) as tmp, open(tmp, "wb") as f:
-            np.savez(f, centers=vlad.centers, names=np.array(names))
+            np.savez(f, centers=vlad.centers, names=np.array(described))
     times["db_global_s"] = time.perf_counter() - t0
     times["db_global_cpu_s"] = time.process_time() - c0
     return {"cache": str(cache), "features": str(feats), "global": str(gfile), "global_matrix": str(gmat), **times}
@@ -365,9 +397,10 @@ def _context(ctx: dict):
         db = select_views(load_database(proj), s)
         g = np.load(ctx["global"])
         index = {n: i for i, n in enumerate(g["names"].tolist())}
-        rows = np.array([index[v.name] for v in db.views], dtype=int)
+        rows = np.array([index.get(v.name, -1) for v in db.views], dtype=int)
+        described = np.flatnonzero(rows >= 0)       # the views with a global descriptor (db_features)
         G = np.load(ctx["global_matrix"], mmap_mode="r")
-        G = G if np.array_equal(rows, np.arange(len(G))) else np.ascontiguousarray(G[rows])   # a subset: a copy
+        G = G if np.array_equal(rows, np.arange(len(G))) else np.ascontiguousarray(G[rows[described]])  # a copy
         if "h5" in _W:
             _W["h5"].close()
         cameras = ctx.get("cameras")            # resolved once by run(); else here
@@ -375,16 +408,21 @@ def _context(ctx: dict):
             from ..queries import query_cameras
 
             cameras = {n: [c.camera.to_line(), c.source] for n, c in query_cameras(proj, query_names(proj, s)).items()}
-        _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=G,
-                  ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
-                  centers=np.array([v.pose.center for v in db.views]).reshape(-1, 3),
-                  look_at=_view_look_at(db), ground=_ground_level(db), level_interval=_level_intervals(db),
-                  view_R=np.array([np.asarray(v.pose.R) for v in db.views]).reshape(-1, 3, 3),
-                  view_t=np.array([np.asarray(v.pose.t) for v in db.views]).reshape(-1, 3),
+        _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=G, described=described,
+                  **_view_arrays(db),
                   h5=h5py.File(ctx["features"], "r"), extractor=_extractor(s.features, db=False),
                   matcher=_matcher(s), cams={n: _camera(line) for n, (line, _src) in cameras.items()},
                   cam_sources={n: src for n, (_line, src) in cameras.items()})
     return _W
+
+
+def _view_arrays(db: Database) -> dict:
+    """What the sensor priors read of the database views, as arrays (one row a view)."""
+    return dict(ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
+                centers=np.array([v.pose.center for v in db.views]).reshape(-1, 3),
+                look_at=_view_look_at(db), ground=_ground_level(db), level_interval=_level_intervals(db),
+                view_R=np.array([np.asarray(v.pose.R) for v in db.views]).reshape(-1, 3, 3),
+                view_t=np.array([np.asarray(v.pose.t) for v in db.views]).reshape(-1, 3))
 
 
 def _view_look_at(db: Database) -> np.ndarray:
@@ -458,7 +496,6 @@ def _localize_query(W: dict, name: str) -> dict:
     import cv2
 
     from ..io.exif import read_photo_meta
-    from .prior import footprint_filter, gps_filter, look_at_points, predicted_overlap, rotation_filter
 
     s: LocalizeSettings = W["s"]
     proj: Project = W["project"]
@@ -494,12 +531,7 @@ def _localize_query(W: dict, name: str) -> dict:
         return rec
     # retrieval
     t = time.perf_counter()
-    keep = np.ones(len(db.views), bool)
-    if s.rotation_prior and prior_R is not None:
-        keep &= rotation_filter(rec["prior_ypr"], W["ypr"], s.gamma_o)
-    if s.gps_radius_m is not None and meta.has_gps:
-        xy = proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude or 0.0)
-        keep &= gps_filter(np.ravel(xy)[:2], W["centers"], s.gps_radius_m)
+    keep, near, pred, prior_rec = _sensor_priors(W, s, proj, db, meta, cam, prior_R)
     rec["n_candidates"] = int(keep.sum())
     if not keep.any():
         sec["retrieval"] = time.perf_counter() - t
@@ -507,31 +539,14 @@ def _localize_query(W: dict, name: str) -> dict:
                          f"(yaw, pitch, roll = {', '.join(f'{a:.1f}' for a in rec.get('prior_ypr', []))})"
                          if s.rotation_prior and prior_R is not None else "no database view passes the priors")
         return rec
-    score = W["G"] @ W["vlad"].describe(fq.desc)
-    near, key = None, score
-    if s.position_prior is not None and meta.has_gps and meta.altitude is not None and prior_R is not None:
-        c = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude))[:3]
-        if s.position_prior == "footprint":
-            la = look_at_points(c[None], np.asarray(prior_R)[2][None], W["ground"])[0]
-            near = footprint_filter(la, W["look_at"], s.gps_footprint_radius_m)
-            rec["position_prior"] = {"mode": "footprint", "look_at_xy": [round(float(x), 2) for x in la],
-                                     "n_near": int((near & keep).sum()), "radius_m": s.gps_footprint_radius_m}
-        else:
-            idx = np.flatnonzero(keep)
-            pred = np.zeros(len(db.views))
-            pred[idx] = predicted_overlap(c, prior_R, cam.pinhole_part(), W["view_R"][idx], W["view_t"][idx],
-                                          db.camera, W["ground"], angle_deg=s.prior_angle_deg)
-            near = pred > 0
-            key = pred + s.prior_vlad_weight * score
-            rec["position_prior"] = {"mode": "overlap", "n_overlapping": int((near & keep).sum()),
-                                     "best_predicted": round(float(pred.max()), 3)}
-    elif (s.position_prior is not None and s.no_attitude_radius_m is not None and meta.has_gps
-          and prior_R is None and len(db.views)):
-        xy = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude or 0.0))[:2]
-        dist = np.linalg.norm(W["centers"][:, :2] - xy, axis=1)
-        near = dist <= 0.75 * W["level_interval"] + s.no_attitude_radius_m
-        rec["position_prior"] = {"mode": "near (no attitude)", "n_near": int((near & keep).sum()),
-                                 "margin_m": s.no_attitude_radius_m}
+    if prior_rec is not None:
+        rec["position_prior"] = prior_rec
+    score = np.zeros(len(db.views))
+    score[W["described"]] = W["G"] @ W["vlad"].describe(fq.desc)
+    key = score if pred is None else pred + s.prior_vlad_weight * score
+    ranked_from = np.zeros(len(db.views), bool)     # a view without a global descriptor is never ranked
+    ranked_from[W["described"]] = True              # (db_features "reachable": it could not have been)
+    keep = keep & ranked_from
     ranked = rank_candidates(key, keep, near, s.top_k * (1 + max(0, s.fallback_rounds)))
     sec["retrieval"] = time.perf_counter() - t
     rounds = [ranked[k:k + s.top_k] for k in range(0, len(ranked), s.top_k)]
@@ -554,6 +569,83 @@ def _localize_query(W: dict, name: str) -> dict:
         if not rec["ok"]:
             rec["reason"] = f"{rec['reason']} (also with {len(failed)} fallback round(s) of {s.top_k} more views)"
     return rec
+
+
+def _sensor_priors(V: dict, s: LocalizeSettings, proj: Project, db: Database, meta, cam: Camera, prior_R):
+    """What the photo's sensors alone say of each database view (``V``: :func:`_view_arrays`):
+    ``keep`` (rotation prior, GPS radius), ``near`` (the position prior's first views, or None),
+    ``pred`` (the predicted overlap the ranking adds to the descriptor score, or None) and the
+    position prior's record for the status (or None)."""
+    from .prior import footprint_filter, gps_filter, look_at_points, predicted_overlap, rotation_filter
+
+    keep = np.ones(len(db.views), bool)
+    if s.rotation_prior and prior_R is not None:
+        keep &= rotation_filter([meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll], V["ypr"], s.gamma_o)
+    if s.gps_radius_m is not None and meta.has_gps:
+        xy = proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude or 0.0)
+        keep &= gps_filter(np.ravel(xy)[:2], V["centers"], s.gps_radius_m)
+    near = pred = prior_rec = None
+    if not keep.any():
+        return keep, near, pred, prior_rec
+    if s.position_prior is not None and meta.has_gps and meta.altitude is not None and prior_R is not None:
+        c = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude))[:3]
+        if s.position_prior == "footprint":
+            la = look_at_points(c[None], np.asarray(prior_R)[2][None], V["ground"])[0]
+            near = footprint_filter(la, V["look_at"], s.gps_footprint_radius_m)
+            prior_rec = {"mode": "footprint", "look_at_xy": [round(float(x), 2) for x in la],
+                         "n_near": int((near & keep).sum()), "radius_m": s.gps_footprint_radius_m}
+        else:
+            idx = np.flatnonzero(keep)
+            pred = np.zeros(len(db.views))
+            pred[idx] = predicted_overlap(c, prior_R, cam.pinhole_part(), V["view_R"][idx], V["view_t"][idx],
+                                          db.camera, V["ground"], angle_deg=s.prior_angle_deg)
+            near = pred > 0
+            prior_rec = {"mode": "overlap", "n_overlapping": int((near & keep).sum()),
+                         "best_predicted": round(float(pred.max()), 3)}
+    elif (s.position_prior is not None and s.no_attitude_radius_m is not None and meta.has_gps
+          and prior_R is None and len(db.views)):
+        xy = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude or 0.0))[:2]
+        dist = np.linalg.norm(V["centers"][:, :2] - xy, axis=1)
+        near = dist <= 0.75 * V["level_interval"] + s.no_attitude_radius_m
+        prior_rec = {"mode": "near (no attitude)", "n_near": int((near & keep).sum()),
+                     "margin_m": s.no_attitude_radius_m}
+    return keep, near, pred, prior_rec
+
+
+def reachable_views(project: Project, db: Database, s: LocalizeSettings, names: list[str],
+                    cameras: dict[str, Camera]) -> np.ndarray:
+    """(N,) bool: the database views some query's retrieval can rank among the views it matches
+    (its top_k x (1 + fallback_rounds)), from the sensor priors alone, before any feature exists.
+
+    A query's ranking key is its predicted overlap + ``prior_vlad_weight`` x the descriptor score, a
+    cosine of unit vectors (-1..1); views its position prior puts first come before all others. So
+    where at least n views are put first, a view whose overlap is below the n-th best minus 2 x the
+    weight can never be ranked within n (a view the footprint or no-attitude prior puts first is
+    ranked by its descriptor score alone: every one of them is reachable); with fewer than n put
+    first, or no position prior (GPS-denied, no attitude and no GPS), every view the query's rotation
+    prior keeps is. A photo whose metadata cannot be read reaches every view."""
+    from ..io.exif import read_photo_meta
+
+    V = _view_arrays(db)
+    n = s.top_k * (1 + max(0, s.fallback_rounds))
+    need = np.zeros(len(db.views), bool)
+    for name in names:
+        try:
+            meta = read_photo_meta(project.paths.images / name)
+        except Exception:  # noqa: BLE001 - the query reports its own error later; it may need any view
+            need[:] = True
+            break
+        prior_R = dji_to_rotation(meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll) if meta.has_gimbal else None
+        keep, near, pred, _rec = _sensor_priors(V, s, project, db, meta, cameras[name], prior_R)
+        first = keep & near if near is not None else None
+        if first is None or first.sum() < n:
+            need |= keep
+        elif pred is None:
+            need |= first
+        else:
+            nth = np.sort(pred[first])[-n]
+            need |= first & (pred >= nth - 2.0 * s.prior_vlad_weight)
+    return need
 
 
 def _match_and_solve(W: dict, rec: dict, fq, cam: Camera, prior_R, order, sec: dict) -> None:
@@ -666,7 +758,17 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
                          f"{settings.db_heights or 'any'} and pitches {settings.db_paper_pitches or 'any'}, the "
                          f"database holds (height, pitch) {have}; render it with those levels "
                          "(gtkit render-db --heights ... --pitches ...)", dbdir)
-    offline = prepare_database(project, db_full, settings, executor)
+    if settings.db_features not in ("reachable", "all"):
+        raise GtkitError(f"[localize] db_features must be \"reachable\" or \"all\", not {settings.db_features!r}",
+                         project.paths.root / "project.toml")
+    views = None
+    if settings.db_features == "reachable":
+        cams = {n: _camera(line) for n, (line, _src) in qcams.items()}
+        reach = reachable_views(project, db, settings, names, cams)
+        views = {v.name for v, r in zip(db.views, reach) if r}
+        log.info("localize: %d of %d database views are reachable from the queries' sensor priors",
+                 len(views), len(db.views))
+    offline = prepare_database(project, db_full, settings, executor, views=views)
     ctx = {"root": str(project.paths.root), "settings": settings_dict(settings),
            "features": offline["features"], "global": offline["global"], "global_matrix": offline["global_matrix"],
            "cameras": qcams}
@@ -696,7 +798,8 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
         "executor": asdict(executor), "queries": results}, project.paths.root))
     mark_stage_done(out, settings, inputs, outputs=[Path(offline["cache"])], n_queries=len(names), n_localized=n_ok,
                     wall_s=round(wall, 2), db_features_s=round(offline["db_features_s"], 2),
-                    db_features_views=offline["db_features_views"], db_global_s=round(offline["db_global_s"], 2),
+                    db_features_views=offline["db_features_views"], db_views_described=offline["db_views_described"],
+                    db_views_total=offline["db_views_total"], db_global_s=round(offline["db_global_s"], 2),
                     db_features_cpu_s=round(offline["db_features_cpu_s"], 2),
                     db_global_cpu_s=round(offline["db_global_cpu_s"], 2),
                     db_features_kb_per_view=None if offline["db_features_kb_per_view"] is None
