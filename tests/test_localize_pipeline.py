@@ -140,38 +140,66 @@ def test_database_features_resume_after_the_process_is_killed(site, tmp_path):
     assert isinstance(ctx["G"], np.memmap)
 
 
-def test_database_features_only_for_the_views_the_queries_can_reach(site, tmp_path):
-    """db_features "reachable" (the default) extracts features and global descriptors only for the
-    views some query's sensor priors can bring within its top_k x (1 + fallback_rounds): every query
-    ranks the same views, in the same order, and gets the same pose as with every view described;
-    the views it skipped are extracted when a run needs them (here: "all")."""
+def test_database_views_and_features_only_for_the_views_the_queries_can_reach(site, tmp_path):
+    """render-db renders, and localize extracts features for, only the views some query's sensor
+    priors can bring within its top_k x (1 + fallback_rounds) (views and db_features "reachable",
+    the defaults): every query ranks the same views, in the same order, and gets the same pose as
+    with every view rendered and described; an ablation that reaches more views renders them."""
     from gtkit.project import Project
 
     copy = tmp_path / "site"
     shutil.copytree(site, copy, ignore=shutil.ignore_patterns("localize*", "reports"))
-    s = localize.LocalizeSettings(top_k=2, fallback_rounds=1, codebook_views=24)
     serial = ExecutorSettings("serial")
     p = Project.load(copy)
+    part = database.load_database(p)                  # the fixture's render-db: the views the queries reach
+    planned = json.loads((copy / "work" / "render_db" / "views.json").read_text())["views"]
+    assert 0 < len(part.views) and len(database.planned_not_rendered(p)) > 0.2 * len(planned)
+    s = localize.LocalizeSettings(top_k=2, fallback_rounds=1)
+    out_p = localize.run(copy, s, ablation="partial", executor=serial)
+    rec_p = json.loads((out_p / "status.json").read_text())
+    assert rec_p["database_views_rendered_for_this_run"] == 0
+    # every view rendered, then features for the reachable ones only, then for all
+    database.run(copy, replace(_db_settings(), views="all"), serial)
     db = database.load_database(p)
+    assert len(db.views) > len(part.views) and not database.planned_not_rendered(p)
     out_r = localize.run(copy, s, ablation="reachable", executor=serial)
     rec_r = json.loads((out_r / "status.json").read_text())
     off = rec_r["offline"]
     assert off["db_views_total"] == len(db.views)
     assert 0 < off["db_views_described"] < 0.8 * len(db.views)
-    assert off["db_features_views"] <= off["db_views_described"] + 24      # + the codebook's views
     feats = localize._db_cache(p, s) / "features.h5"
-    assert len(feature_store.stored_views(feats)) == off["db_features_views"] < len(db.views)
+    assert len(feature_store.stored_views(feats)) < len(db.views)
     out_a = localize.run(copy, replace(s, db_features="all"), ablation="all-views", executor=serial)
     rec_a = json.loads((out_a / "status.json").read_text())
-    assert rec_a["offline"]["db_features_views"] == len(db.views) - off["db_features_views"]
     assert rec_a["offline"]["db_views_described"] == len(db.views)
+    assert len(feature_store.stored_views(feats)) == len(db.views)
     a = {q["name"]: q for q in rec_a["queries"]}
-    r = {q["name"]: q for q in rec_r["queries"]}
     assert sum(q["ok"] for q in a.values()) >= 6
-    for n, q in a.items():
-        assert q.get("retrieved") == r[n].get("retrieved") and q.get("fallback_retrieved") == r[n].get("fallback_retrieved")
-        assert q.get("t") == r[n].get("t") and q.get("q") == r[n].get("q")
-        assert q["reason"] == r[n]["reason"]
+    for other in (rec_r, rec_p):
+        r = {q["name"]: q for q in other["queries"]}
+        for n, q in a.items():
+            assert q.get("retrieved") == r[n].get("retrieved")
+            assert q.get("fallback_retrieved") == r[n].get("fallback_retrieved")
+            assert q.get("t") == r[n].get("t") and q.get("q") == r[n].get("q") and q["reason"] == r[n]["reason"]
+
+
+def test_an_ablation_that_reaches_more_views_renders_them(site, tmp_path):
+    """GPS-denied and without the rotation prior, a query may rank every view: localize renders the
+    planned views the project's render-db left out, and the database keeps them."""
+    from gtkit.project import Project
+
+    copy = tmp_path / "site"
+    shutil.copytree(site, copy, ignore=shutil.ignore_patterns("localize*", "reports"))
+    p = Project.load(copy)
+    n0 = len(database.load_database(p).views)
+    missing0 = len(database.planned_not_rendered(p))
+    s = localize.settings_for("no-gps", localize.LocalizeSettings(query_subset="queries/seq1/0001_W.jpg",
+                                                                 rotation_prior=False))
+    out = localize.run(copy, s, ablation="no-gps", executor=ExecutorSettings("serial"))
+    rec = json.loads((out / "status.json").read_text())
+    assert 0 < rec["database_views_rendered_for_this_run"] <= missing0
+    assert len(database.load_database(p).views) > n0
+    assert len(database.planned_not_rendered(p)) == missing0 - rec["database_views_rendered_for_this_run"] == 0
 
 
 def test_local_workers_end_when_the_process_that_started_them_is_killed(tmp_path):

@@ -37,6 +37,9 @@ def register(sub):
     p.add_argument("--tile-budget-mb", type=float, default=None,
                    help=f"memory for resident tiles of a tiled model, MB (default {S.tile_budget_mb})")
     _executor_args(p)
+    p.add_argument("--views", choices=("reachable", "all"), default=None,
+                   help="render the grid's views the query photos' GPS + gimbal priors can reach (default; "
+                        "localize renders more when an ablation reaches more) or every view (queries flown later)")
     p.add_argument("--force", action="store_true", help="re-render even when up to date")
     p.set_defaults(func=run)
 
@@ -71,6 +74,6 @@ def run(args):
         "heights": args.heights, "intervals": args.intervals, "paper_pitches": args.pitches,
         "yaw_step": args.yaw_step, "anchor": args.anchor, "width": w, "height": h, "hfov_deg": args.hfov,
         "min_valid_fraction": args.min_valid, "texture_detail": args.texture_detail,
-        "tile_budget_mb": args.tile_budget_mb})
+        "tile_budget_mb": args.tile_budget_mb, "views": args.views})
     out = database.run(project, s, executor_settings(args), force=args.force)
     print(f"database: {out}")

@@ -90,12 +90,19 @@ class RenderDbSettings:
     # view never samples; gtkit.render.texture_detail), so a photo-built model's full-resolution
     # textures do not fill the tile budget; "stored": textures as stored.
     texture_detail: str = "views"
+    # Which planned views are rendered: "reachable" = those some query's retrieval can rank among
+    # the views it matches, from its GPS + gimbal priors and the project's [localize] settings
+    # (:func:`gtkit.localize.localize.reachable_views`; a query without them reaches every view its
+    # rotation prior keeps, a project without query photos gets every view); "all" = every view (the
+    # paper's database, for queries not flown yet). localize renders any view its own settings reach
+    # that is not on disk yet, so an ablation never runs on a database too small for it.
+    views: str = "reachable"
 
 
 # Settings that only choose *which* views exist or are kept, never what a view of a given name looks
 # like: changing them keeps every view already on disk (adding a pitch level renders only the new
 # level, and the feature cache of the localize stage, keyed by the same record, stays valid).
-VIEW_SET_FIELDS = ("paper_pitches", "min_valid_fraction")
+VIEW_SET_FIELDS = ("paper_pitches", "min_valid_fraction", "views")
 
 
 def view_record(settings: dict, inputs: dict) -> dict:
@@ -455,20 +462,33 @@ def plan_views(project: Project, s: RenderDbSettings) -> tuple[list[View], dict,
 
 
 def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSettings(),
-        executor: ExecutorSettings = ExecutorSettings(), chunk: int = 8, force: bool = False) -> Path:
-    """Render the database; returns its folder. Resumes view by view when settings match."""
+        executor: ExecutorSettings = ExecutorSettings(), chunk: int = 8, force: bool = False,
+        localize_settings=None) -> Path:
+    """Render the database; returns its folder. Resumes view by view when settings match.
+    ``localize_settings``: the priors that choose the views when ``settings.views`` is "reachable"
+    (None = the project's [localize] settings)."""
     project = project if isinstance(project, Project) else Project.load(project)
     _check_texture_detail(settings)              # an unknown texture_detail is refused before any work
+    if settings.views not in ("reachable", "all"):
+        raise GtkitError(f"[render_db] views must be \"reachable\" or \"all\", not {settings.views!r}",
+                         project.paths.project_toml)
     P = project.paths
     out = P.stage(STAGE)
     model_in = {"model": model_fingerprint(P.root, settings.model)}
     inputs = dict(model_in)
-    if not _grid_given(settings):                # the grid follows the queries: their files are inputs
+    if settings.views == "reachable":
+        from ..settings import resolve
+        from .reach import prior_settings_key
+        from .settings import LocalizeSettings
+
+        localize_settings = localize_settings or resolve(LocalizeSettings(), "localize", project)
+        inputs["localize_priors"] = prior_settings_key(localize_settings)
+    if not _grid_given(settings) or settings.views == "reachable":   # the queries' files are inputs
         from ..queries import query_cameras, query_photos
 
         names = query_photos(project)
         inputs["queries"] = settings_key({n: file_fingerprint(P.images / n) for n in names})
-        if settings.hfov_deg is None:
+        if settings.hfov_deg is None and not _grid_given(settings):
             try:
                 inputs["query_hfov"] = grid_hfov(c.camera.hfov_deg() for c in query_cameras(project, names).values())
             except (GtkitError, ValueError):
@@ -490,42 +510,99 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
             (out / f).unlink(missing_ok=True)
     write_json(sfile, sd)
     fractions: dict[str, float] = {}
-    todo = []
     for v in views:
         f = _existing_fraction(out / "depth" / f"{v.name}.npz")
-        if f is None:
-            todo.append(v)
-        else:
+        if f is not None:
             fractions[v.name] = f
-    log.info("render-db: %d views planned, %d already on disk, %d to render", len(views), len(fractions), len(todo))
-    t0 = time.perf_counter()
-    if todo:
-        g = info["ground_level_z"]
-        record = json.loads(sfile.read_text())
-        tasks = [(str(P.root), asdict(settings_in), [v.as_dict() for v in todo[i:i + chunk]], g, record)
-                 for i in range(0, len(todo), chunk)]
+    n_before = len(fractions)
+    cam = db_camera(settings_in)
+    record = json.loads(sfile.read_text())
+
+    def render(todo: list[View]) -> None:
+        tasks = [(str(P.root), asdict(settings_in), [v.as_dict() for v in todo[i:i + chunk]], info["ground_level_z"],
+                  record) for i in range(0, len(todo), chunk)]
         ex = make_executor(executor)
         try:
             for res in iter_map(ex, _render_chunk, tasks, progress="render-db"):
                 fractions.update(dict(res))
         finally:
             ex.close()
+
+    t0 = time.perf_counter()
+    reach = None
+    if settings.views == "reachable":
+        reach = render_reachable(project, views, fractions, settings.min_valid_fraction, cam, out, render,
+                                 localize_settings)
+    if reach is None:                            # every view (settings, or nothing to reach from)
+        todo = [v for v in views if v.name not in fractions]
+        log.info("render-db: %d views planned, %d already on disk, %d to render", len(views), n_before, len(todo))
+        if todo:
+            render(todo)
     dt = time.perf_counter() - t0
-    cam = db_camera(settings_in)
-    kept = [v for v in views if fractions[v.name] >= settings.min_valid_fraction]
+    n_rendered = len(fractions) - n_before
+    kept = _write_views(out, views, fractions, settings.min_valid_fraction, cam, info)
+    disk = sum(f.stat().st_size for sub in ("images", "depth") for f in (out / sub).rglob("*") if f.is_file())
+    mark_stage_done(out, settings, inputs, grid=info["grid"], n_views=len(views), n_kept=len(kept), n_rendered=n_rendered,
+                    n_on_disk=len(fractions), views_rendered="all" if reach is None else "reachable",
+                    render_rounds=reach,
+                    seconds=round(dt, 2), views_per_s=round(n_rendered / dt, 3) if n_rendered and dt > 0 else None,
+                    disk_mb=round(disk / 2**20, 1), disk_kb_per_kept_view=round(disk / 2**10 / max(1, len(kept)), 1))
+    log.info("render-db: %d of %d views kept (%d rendered in %.1f s)", len(kept), len(views), n_rendered, dt)
+    return out
+
+
+def render_reachable(project: Project, views: list[View], fractions: dict[str, float], min_valid: float,
+                     cam: Camera, out: Path, render: Callable[[list[View]], None], localize_settings) -> int | None:
+    """Render the planned ``views`` some query can reach (``fractions``: the views on disk, updated
+    by ``render``), round by round until none is missing: each round takes as candidates every view
+    not known to be dropped (on disk and kept, or not rendered yet), so the views a query ranks
+    first are all rendered and kept when it stops, and the database gives each query the ranking
+    the whole grid would. Returns the rounds, or None when no query photo (or its camera) can say
+    which views it reaches: then every view is rendered. The codebook's views
+    (:func:`gtkit.localize.localize.codebook_views`) are rendered too."""
+    from ..queries import query_cameras
+    from .reach import codebook_views, query_names, reachable_views
+
+    try:
+        names = query_names(project, localize_settings)
+        cams = {n: qc.camera for n, qc in query_cameras(project, names).items()} if names else {}
+    except GtkitError as e:
+        log.info("render-db: every view (the queries' cameras: %s)", e)
+        return None
+    if not names:
+        log.info("render-db: no query photos: every view is rendered")
+        return None
+    # and the views the VLAD codebook is trained on (spread over the grid: the same codebook as a
+    # database of every view)
+    book = set(codebook_views([v.name for v in views], localize_settings))
+    rounds = 0
+    while True:
+        cand = [v for v in views if fractions.get(v.name, min_valid) >= min_valid]
+        need = reachable_views(project, database_of(out, cam, cand), localize_settings, names, cams)
+        need |= np.array([v.name in book for v in cand], bool)
+        todo = [v for v, r in zip(cand, need) if r and v.name not in fractions]
+        log.info("render-db: round %d: %d of %d planned views reachable from %d queries, %d to render",
+                 rounds + 1, int(need.sum()), len(views), len(names), len(todo))
+        if not todo:
+            return rounds
+        render(todo)
+        rounds += 1
+
+
+def _write_views(out: Path, views: list[View], fractions: dict[str, float], min_valid: float, cam: Camera,
+                 info: dict) -> list[View]:
+    """views.json (every planned view; one not rendered has no valid_fraction), poses.txt and
+    intrinsics.txt (the kept views); returns the kept views."""
+    kept = [v for v in views if fractions.get(v.name, -1.0) >= min_valid]
     write_json(out / "views.json", {
         **info, "camera": cam.to_line(),
-        "note": "paper pitch 0 = nadir = DJI pitch -90; paper pitch 45 = DJI pitch -45; heights above ground_level_z",
-        "views": [{**v.as_dict(), "valid_fraction": fractions[v.name],
-                   "kept": fractions[v.name] >= settings.min_valid_fraction} for v in views]})
+        "note": "paper pitch 0 = nadir = DJI pitch -90; paper pitch 45 = DJI pitch -45; heights above ground_level_z; "
+                "a view with valid_fraction null is planned but not rendered (no query reaches it)",
+        "views": [{**v.as_dict(), "valid_fraction": fractions.get(v.name),
+                   "kept": fractions.get(v.name, -1.0) >= min_valid} for v in views]})
     write_poses(out / "poses.txt", {f"{v.name}.jpg": v.pose() for v in kept}, header="render-db views")
     write_intrinsics(out / "intrinsics.txt", {f"{v.name}.jpg": cam for v in kept})
-    disk = sum(f.stat().st_size for sub in ("images", "depth") for f in (out / sub).rglob("*") if f.is_file())
-    mark_stage_done(out, settings, inputs, grid=info["grid"], n_views=len(views), n_kept=len(kept), n_rendered=len(todo),
-                    seconds=round(dt, 2), views_per_s=round(len(todo) / dt, 3) if todo and dt > 0 else None,
-                    disk_mb=round(disk / 2**20, 1), disk_kb_per_kept_view=round(disk / 2**10 / max(1, len(kept)), 1))
-    log.info("render-db: %d of %d views kept (%d rendered in %.1f s)", len(kept), len(views), len(todo), dt)
-    return out
+    return kept
 
 
 # --- reading the database ---------------------------------------------------------------------
@@ -567,12 +644,25 @@ def load_database(project: Project) -> Database:
     d = json.loads(vfile.read_text())
     f = d["camera"].split()
     cam = Camera(f[0], int(f[1]), int(f[2]), tuple(float(x) for x in f[3:]))
-    views = []
-    for vd in d["views"]:
-        if not vd["kept"]:
-            continue
-        v = View(**{k: vd[k] for k in ("name", "height", "paper_pitch", "yaw", "pitch", "roll")},
-                 center=tuple(vd["center"]))
-        views.append(DbView(v.name, out / "images" / f"{v.name}.jpg", out / "depth" / f"{v.name}.npz",
-                            v.pose(), v.yaw, v.pitch, v.roll, v.height, v.paper_pitch))
-    return Database(out, cam, views)
+    return database_of(out, cam, [_view(vd) for vd in d["views"] if vd["kept"]])
+
+
+def _view(vd: dict) -> View:
+    return View(**{k: vd[k] for k in ("name", "height", "paper_pitch", "yaw", "pitch", "roll")}, center=tuple(vd["center"]))
+
+
+def database_of(out: Path, cam: Camera, views: list[View]) -> Database:
+    """A :class:`Database` of these views (planned or rendered) under ``out``."""
+    return Database(out, cam, [DbView(v.name, out / "images" / f"{v.name}.jpg", out / "depth" / f"{v.name}.npz",
+                                      v.pose(), v.yaw, v.pitch, v.roll, v.height, v.paper_pitch) for v in views])
+
+
+def planned_names(project: Project) -> list[str]:
+    """Every planned view's name, rendered or not."""
+    return [vd["name"] for vd in json.loads((project.paths.stage(STAGE) / "views.json").read_text())["views"]]
+
+
+def planned_not_rendered(project: Project) -> list[View]:
+    """The planned views not rendered (no query reached them yet)."""
+    d = json.loads((project.paths.stage(STAGE) / "views.json").read_text())
+    return [_view(vd) for vd in d["views"] if vd.get("valid_fraction") is None]

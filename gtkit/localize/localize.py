@@ -51,7 +51,7 @@ import dataclasses
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -67,97 +67,12 @@ from ..project import (Project, file_fingerprint, mark_stage_done, relative_path
 from .database import PAPER_PITCHES, Database, load_database
 from .executors import ExecutorSettings, SerialExecutor, iter_map, make_executor, run_map
 from .pnp import PnPSettings
+from .reach import codebook_views, query_names, reachable_views, sensor_priors, view_arrays
+from .settings import XFEAT_FEATURES, FeatureSettings, LocalizeSettings  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
 STEPS = ("features", "retrieval", "matching", "lifting", "pnp")
 MIN_QUERY_KEYPOINTS = 20
-
-
-@dataclass(frozen=True)
-class FeatureSettings:
-    extractor: str = "sift"
-    max_keypoints: int = 4000          # per query image
-    # Per database view. SIFT on a 640 x 480 view costs ~55 ms of detection (OpenCV's first octave is
-    # the view doubled) + ~25 us a descriptor (1 thread): 3000 -> 2000 keypoints is 132 -> 109 ms CPU.
-    # Small seeds 1, 2, 6 (28 queries each): 3000 and 2000 both localize 100 / 100 / 100 %; 1500 loses
-    # a query at (1m,1deg) on seeds 1 and 6 (seed 6's seq3/0008, vegetation: 35 inliers at 3000, 33 at
-    # 2000, not localized at 1500).
-    max_keypoints_db: int = 2000
-    max_side: int = 1024               # query images are resized to this longer side for features
-    contrast_threshold: float = 0.02
-
-
-# XFeat is not scale invariant: queries are resized to the database views' size (640 px), which on
-# the small sample gives R@1 82 % (57 % at 1024 px) and recall(1m,1deg) 89 % (79 %). 1024 keypoints
-# a query and a view: LighterGlue's cost grows with the square of the keypoint count (per pair,
-# 1 thread, loaded 2-core machine: 1024 -> 0.4 s, 2048 -> 1.5 s, 4000 -> 6.7 s); 2048 lowers the
-# median position error from 0.31 to 0.23 m at 3x the CPU time a query.
-XFEAT_FEATURES = FeatureSettings(extractor="xfeat", max_keypoints=1024, max_keypoints_db=1024, max_side=640)
-
-
-@dataclass(frozen=True)
-class LocalizeSettings:
-    features: FeatureSettings = FeatureSettings()
-    matcher: str = "nn-ratio"
-    ratio: float = 0.85                # Lowe's ratio for nn-ratio
-    descriptor: str = "vlad"
-    vlad_words: int = 64
-    rotation_prior: bool = True        # filter database views by the IMU prior (paper: on)
-    gamma_o: float = 30.0              # deg, per angle (paper)
-    gps_radius_m: float | None = None  # keep views whose camera centre lies within this radius of the GPS prior
-    # Position prior (not in the paper, which is GPS-denied; ablation 'no-gps' switches it off), used
-    # when the photo has GPS + altitude + gimbal angles: "overlap" ranks the candidates by the overlap
-    # predicted from the sensors + prior_vlad_weight x descriptor score (see the module doc);
-    # "footprint" ranks first the views whose look-at point (optical axis meets the database's
-    # ground level) lies within gps_footprint_radius_m of the query's; None = off.
-    position_prior: str | None = "overlap"
-    # Weight of the descriptor score next to the predicted overlap (both about 0-1). Measured on the
-    # small sample (seed 0, 28 queries, offline over all candidates): R@1 100 % at 0 and 0.25, 96 % at
-    # 0.5-1, 79 % at 4; 0.25 keeps the appearance as a tie-break between views of equal predicted overlap.
-    prior_vlad_weight: float = 0.25
-    # The predicted overlap counts a ground point fully when the view sees it within the first angle
-    # (deg) of the query's direction, not at all beyond the second (prior.predicted_overlap). Without
-    # it (None) far views at the 70 deg level won the ranking on the medium sample (seed 5) and 27 of
-    # 79 queries failed PnP on views 23-34 deg away.
-    prior_angle_deg: tuple[float, float] | None = (15.0, 35.0)
-    # 75 m = the largest grid interval alpha_t: every ground point lies within alpha_t/sqrt(2) = 53 m
-    # of a grid position of every level, leaving ~20 m for GPS/altitude error (position_prior "footprint").
-    gps_footprint_radius_m: float = 75.0
-    # A photo with GPS but no gimbal angles (consumer cameras; the position prior "overlap" needs the
-    # attitude): the views whose camera centre lies within 0.75 x their level's grid interval (every
-    # point is within interval / sqrt(2) of a grid position) + this margin for the GPS error of the
-    # query's GPS position (horizontally) come first, by descriptor score; None = off.
-    no_attitude_radius_m: float | None = 20.0
-    top_k: int = 3                     # retrieved views per query (paper)
-    # When PnP fails on the top-k views, try the next top-k of the ranking, up to this many more times
-    # (0 = the paper). Costs time only on queries that would otherwise fail (at most
-    # (1 + fallback_rounds) * top_k matchings, ~0.2 s each). VLAD ranks the right view of repetitive
-    # fields (the small sample's vegetation sequence) 5th-13th of ~20-40 rotation-prior candidates, so a
-    # GPS-denied run needs up to 4 rounds there; with the GPS footprint prior none is needed.
-    fallback_rounds: int = 5
-    # A pose whose first-order position sigma (1-sigma radius, inflated as in PnPSettings) exceeds this
-    # is not reported: it is a failed round (the next views are tried) and, if no round does better,
-    # the query fails with the rejected pose kept in status.json. On the small sample (seeds 0, 1:
-    # 56 localized queries) the largest sigma of a pose within 1.2 m of the truth was 1.5 m, and the
-    # error was at most 3.8 sigma. None = report every PnP pose (the paper).
-    max_sigma_pos_m: float | None = 2.5
-    max_rel_jump: float = 0.03         # depth discontinuity test for lifting (relative)
-    pnp: PnPSettings = PnPSettings()   # gravity_deg = gamma_eps (5 deg; paper 2); None = no check
-    db_heights: tuple[float, ...] | None = None        # use only these database levels
-    db_highest_only: bool = False                      # use only the highest database level
-    db_paper_pitches: tuple[float, ...] | None = None  # use only these paper pitches (0 = nadir)
-    # Which database views get local features and a global descriptor: "reachable" = only the views
-    # some query's retrieval can rank within its top_k x (1 + fallback_rounds) from its sensor priors
-    # alone (:func:`reachable_views`; a query without a position prior reaches every view its
-    # rotation prior keeps), "all" = every view (the paper's offline step). The ranking of every
-    # query is the same either way (the bound is exact for unit global descriptors); the VLAD codebook
-    # is trained on a fixed spread of views (``codebook_views``) in both, so a query's result does
-    # not depend on which other queries ran.
-    db_features: str = "reachable"
-    codebook_views: int = 1500
-    # Which photos are queries is [sfm] query_pattern (gtkit.queries.query_photos); this only narrows
-    # them to the names matching a glob (relative to images/, e.g. "queries/seq1/*"); None = all.
-    query_subset: str | None = None
 
 
 # Ablations (the paper's tables): each names its own output folder work/localize-<name>/.
@@ -270,15 +185,6 @@ def _extract_db_views(task):
     return out, time.process_time() - c0
 
 
-def codebook_views(db: Database, n: int) -> list[str]:
-    """``n`` views spread evenly over the database's sorted view names (level by level, position by
-    position): the views the VLAD codebook is trained on, the same whichever queries run."""
-    names = sorted(v.name for v in db.views)
-    if len(names) <= n:
-        return names
-    return [names[i] for i in np.unique(np.round(np.linspace(0, len(names) - 1, n)).astype(int))]
-
-
 def prepare_database(project: Project, db: Database, s: LocalizeSettings, executor: ExecutorSettings,
                      views: set[str] | None = None) -> dict:
     """Database features + VLAD codebook + global descriptors, cached; returns seconds by step.
@@ -297,7 +203,10 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
     times = {}
     t0 = time.perf_counter()
     described = sorted(v.name for v in db.views) if views is None else sorted(views)
-    train = codebook_views(db, s.codebook_views)
+    from .database import planned_names
+
+    kept = {v.name for v in db.views}
+    train = [n for n in codebook_views(planned_names(project), s) if n in kept]
     wanted = set(described) | set(train)
     done = feature_store.stored_views(feats)   # the feature file + the chunks a killed run finished
     todo = [v for v in db.views if v.name in wanted and v.name not in done]
@@ -368,17 +277,6 @@ def prepare_database(project: Project, db: Database, s: LocalizeSettings, execut
 
 # --- per query (runs in workers) ------------------------------------------------------------
 
-def query_names(project: Project, s: LocalizeSettings) -> list[str]:
-    """The query photos ([sfm] query_pattern, :func:`gtkit.queries.query_photos`), narrowed to
-    ``s.query_subset`` when given."""
-    from fnmatch import fnmatchcase
-
-    from ..queries import query_photos
-
-    names = query_photos(project)
-    return [n for n in names if fnmatchcase(n, s.query_subset)] if s.query_subset else names
-
-
 def _camera(line: str) -> Camera:
     f = line.split()
     return Camera(f[0], int(f[1]), int(f[2]), tuple(float(x) for x in f[3:]))
@@ -409,48 +307,11 @@ def _context(ctx: dict):
 
             cameras = {n: [c.camera.to_line(), c.source] for n, c in query_cameras(proj, query_names(proj, s)).items()}
         _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=G, described=described,
-                  **_view_arrays(db),
+                  **view_arrays(db),
                   h5=h5py.File(ctx["features"], "r"), extractor=_extractor(s.features, db=False),
                   matcher=_matcher(s), cams={n: _camera(line) for n, (line, _src) in cameras.items()},
                   cam_sources={n: src for n, (_line, src) in cameras.items()})
     return _W
-
-
-def _view_arrays(db: Database) -> dict:
-    """What the sensor priors read of the database views, as arrays (one row a view)."""
-    return dict(ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
-                centers=np.array([v.pose.center for v in db.views]).reshape(-1, 3),
-                look_at=_view_look_at(db), ground=_ground_level(db), level_interval=_level_intervals(db),
-                view_R=np.array([np.asarray(v.pose.R) for v in db.views]).reshape(-1, 3, 3),
-                view_t=np.array([np.asarray(v.pose.t) for v in db.views]).reshape(-1, 3))
-
-
-def _view_look_at(db: Database) -> np.ndarray:
-    """(N, 2) look-at points of the database views on their ground level (centre z minus height)."""
-    from .prior import look_at_points
-
-    if not db.views:
-        return np.zeros((0, 2))
-    centers = np.array([v.pose.center for v in db.views])
-    axes = np.array([np.asarray(v.pose.R)[2] for v in db.views])  # camera +z in the world
-    return look_at_points(centers, axes, _ground_level(db))
-
-
-def _level_intervals(db: Database) -> np.ndarray:
-    """(N,) the grid interval of each view's level: the smallest spacing of its level's positions."""
-    out = np.zeros(len(db.views))
-    hs = np.array([v.height for v in db.views])
-    for h in np.unique(hs):
-        idx = np.flatnonzero(hs == h)
-        xy = np.unique(np.round([db.views[i].pose.center[:2] for i in idx], 3), axis=0)
-        gaps = [np.diff(np.unique(xy[:, k])) for k in (0, 1)]
-        gaps = np.concatenate([g[g > 1e-3] for g in gaps])
-        out[idx] = gaps.min() if len(gaps) else 0.0
-    return out
-
-
-def _ground_level(db: Database) -> float:
-    return float(np.median([v.pose.center[2] - v.height for v in db.views])) if db.views else 0.0
 
 
 def rank_candidates(score: np.ndarray, keep: np.ndarray, near: np.ndarray | None, n: int) -> np.ndarray:
@@ -531,7 +392,7 @@ def _localize_query(W: dict, name: str) -> dict:
         return rec
     # retrieval
     t = time.perf_counter()
-    keep, near, pred, prior_rec = _sensor_priors(W, s, proj, db, meta, cam, prior_R)
+    keep, near, pred, prior_rec = sensor_priors(W, s, proj, db, meta, cam, prior_R)
     rec["n_candidates"] = int(keep.sum())
     if not keep.any():
         sec["retrieval"] = time.perf_counter() - t
@@ -571,81 +432,27 @@ def _localize_query(W: dict, name: str) -> dict:
     return rec
 
 
-def _sensor_priors(V: dict, s: LocalizeSettings, proj: Project, db: Database, meta, cam: Camera, prior_R):
-    """What the photo's sensors alone say of each database view (``V``: :func:`_view_arrays`):
-    ``keep`` (rotation prior, GPS radius), ``near`` (the position prior's first views, or None),
-    ``pred`` (the predicted overlap the ranking adds to the descriptor score, or None) and the
-    position prior's record for the status (or None)."""
-    from .prior import footprint_filter, gps_filter, look_at_points, predicted_overlap, rotation_filter
+def render_missing_views(project: Project, s: LocalizeSettings, names: list[str], cameras: dict[str, Camera],
+                         executor: ExecutorSettings) -> int:
+    """Render the planned database views these settings reach that are not on disk (a database
+    rendered for other priors, e.g. the project's, and an ablation without the position prior);
+    returns how many were missing."""
+    from . import database
 
-    keep = np.ones(len(db.views), bool)
-    if s.rotation_prior and prior_R is not None:
-        keep &= rotation_filter([meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll], V["ypr"], s.gamma_o)
-    if s.gps_radius_m is not None and meta.has_gps:
-        xy = proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude or 0.0)
-        keep &= gps_filter(np.ravel(xy)[:2], V["centers"], s.gps_radius_m)
-    near = pred = prior_rec = None
-    if not keep.any():
-        return keep, near, pred, prior_rec
-    if s.position_prior is not None and meta.has_gps and meta.altitude is not None and prior_R is not None:
-        c = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude))[:3]
-        if s.position_prior == "footprint":
-            la = look_at_points(c[None], np.asarray(prior_R)[2][None], V["ground"])[0]
-            near = footprint_filter(la, V["look_at"], s.gps_footprint_radius_m)
-            prior_rec = {"mode": "footprint", "look_at_xy": [round(float(x), 2) for x in la],
-                         "n_near": int((near & keep).sum()), "radius_m": s.gps_footprint_radius_m}
-        else:
-            idx = np.flatnonzero(keep)
-            pred = np.zeros(len(db.views))
-            pred[idx] = predicted_overlap(c, prior_R, cam.pinhole_part(), V["view_R"][idx], V["view_t"][idx],
-                                          db.camera, V["ground"], angle_deg=s.prior_angle_deg)
-            near = pred > 0
-            prior_rec = {"mode": "overlap", "n_overlapping": int((near & keep).sum()),
-                         "best_predicted": round(float(pred.max()), 3)}
-    elif (s.position_prior is not None and s.no_attitude_radius_m is not None and meta.has_gps
-          and prior_R is None and len(db.views)):
-        xy = np.ravel(proj.frame.wgs84_to_local(meta.lon, meta.lat, meta.altitude or 0.0))[:2]
-        dist = np.linalg.norm(V["centers"][:, :2] - xy, axis=1)
-        near = dist <= 0.75 * V["level_interval"] + s.no_attitude_radius_m
-        prior_rec = {"mode": "near (no attitude)", "n_near": int((near & keep).sum()),
-                     "margin_m": s.no_attitude_radius_m}
-    return keep, near, pred, prior_rec
-
-
-def reachable_views(project: Project, db: Database, s: LocalizeSettings, names: list[str],
-                    cameras: dict[str, Camera]) -> np.ndarray:
-    """(N,) bool: the database views some query's retrieval can rank among the views it matches
-    (its top_k x (1 + fallback_rounds)), from the sensor priors alone, before any feature exists.
-
-    A query's ranking key is its predicted overlap + ``prior_vlad_weight`` x the descriptor score, a
-    cosine of unit vectors (-1..1); views its position prior puts first come before all others. So
-    where at least n views are put first, a view whose overlap is below the n-th best minus 2 x the
-    weight can never be ranked within n (a view the footprint or no-attitude prior puts first is
-    ranked by its descriptor score alone: every one of them is reachable); with fewer than n put
-    first, or no position prior (GPS-denied, no attitude and no GPS), every view the query's rotation
-    prior keeps is. A photo whose metadata cannot be read reaches every view."""
-    from ..io.exif import read_photo_meta
-
-    V = _view_arrays(db)
-    n = s.top_k * (1 + max(0, s.fallback_rounds))
-    need = np.zeros(len(db.views), bool)
-    for name in names:
-        try:
-            meta = read_photo_meta(project.paths.images / name)
-        except Exception:  # noqa: BLE001 - the query reports its own error later; it may need any view
-            need[:] = True
-            break
-        prior_R = dji_to_rotation(meta.gimbal_yaw, meta.gimbal_pitch, meta.gimbal_roll) if meta.has_gimbal else None
-        keep, near, pred, _rec = _sensor_priors(V, s, project, db, meta, cameras[name], prior_R)
-        first = keep & near if near is not None else None
-        if first is None or first.sum() < n:
-            need |= keep
-        elif pred is None:
-            need |= first
-        else:
-            nth = np.sort(pred[first])[-n]
-            need |= first & (pred >= nth - 2.0 * s.prior_vlad_weight)
-    return need
+    db = load_database(project)
+    unrendered = database.planned_not_rendered(project)
+    if not unrendered:
+        return 0
+    cand = database.Database(db.root, db.camera, db.views + database.database_of(db.root, db.camera, unrendered).views)
+    need = reachable_views(project, cand, s, names, cameras)
+    missing = int(need[len(db.views):].sum())
+    if missing:
+        rec = json.loads((project.paths.stage(database.STAGE) / "stage.json").read_text())["settings"]
+        fields = {f.name for f in dataclasses.fields(database.RenderDbSettings)}
+        rs = database.RenderDbSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in rec.items() if k in fields})
+        log.info("localize: %d database views these settings reach are not rendered yet: rendering them", missing)
+        database.run(project, rs, executor, localize_settings=s)
+    return missing
 
 
 def _match_and_solve(W: dict, rec: dict, fq, cam: Camera, prior_R, order, sec: dict) -> None:
@@ -743,6 +550,8 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
     from .features import CODE_VERSION
 
     qcams = {n: [qc.camera.to_line(), qc.source] for n, qc in query_cameras(project, names).items()}
+    n_missing = render_missing_views(project, settings, names, {n: _camera(line) for n, (line, _s) in qcams.items()},
+                                     executor)
     inputs = {"render_db": file_fingerprint(dbdir / "stage.json"), "queries": settings_key(names),
               "cameras": settings_key(qcams), "feature_code": CODE_VERSION.get(settings.features.extractor, 1)}
     if not force and stage_done(out, settings, inputs):
@@ -792,7 +601,7 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
     n_ok = len(poses)
     write_json(out / "status.json", relative_paths({  # portable: paths relative to the project root
         "ablation": ablation, "settings": settings_dict(settings), "n_queries": len(names), "n_localized": n_ok,
-        "database_views": len(db.views), "offline": offline, "wall_s": wall, "total_s": time.perf_counter() - t_all,
+        "database_views": len(db.views), "database_views_rendered_for_this_run": n_missing, "offline": offline, "wall_s": wall, "total_s": time.perf_counter() - t_all,
         "intrinsics_sources": _count(src for _line, src in qcams.values()),
         "no_attitude": sorted(r["name"] for r in results if r.get("attitude") is False),
         "executor": asdict(executor), "queries": results}, project.paths.root))
