@@ -177,7 +177,7 @@ def site_info(root: Path) -> dict:
     rdb = _json(root / "work" / "render_db" / "stage.json").get("summary", {})
     return {"project": str(root), "preset": sample.get("preset", "?"), "seed": sample.get("seed"),
             "area_km2": area, "photos": photos, "queries": queries, "views": rdb.get("n_views"),
-            "views_kept": rdb.get("n_kept")}
+            "views_rendered": rdb.get("n_on_disk", rdb.get("n_views")), "views_kept": rdb.get("n_kept")}
 
 
 def _cost_of(summary: dict) -> dict:
@@ -319,11 +319,11 @@ def _cell(rows: list[dict]) -> str:
 
 def table(projects: list[Path], per_site: bool = False) -> tuple[str, dict]:
     sites, costs = _merge([site_info(p) for p in projects], [stage_costs(p) for p in projects])
-    lines = ["| site | area km² | reference photos | query photos (wide) | database views (kept) |",
+    lines = ["| site | area km² | reference photos | query photos (wide) | database views planned / rendered / kept |",
              "|---|---|---|---|---|"]
     for s in sites:
         lines.append(f"| {s['preset']} seed {s['seed']} | {_f(s['area_km2'], '{:.3g}')} | {_f(s['photos'])} | "
-                     f"{_f(s['queries'])} | {_f(s['views'])} ({_f(s['views_kept'])}) |")
+                     f"{_f(s['queries'])} | {_f(s['views'])} / {_f(s['views_rendered'])} / {_f(s['views_kept'])} |")
     by_preset: dict[str, list[int]] = {}
     for i, s in enumerate(sites):
         by_preset.setdefault(s["preset"], []).append(i)
