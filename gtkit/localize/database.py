@@ -561,7 +561,7 @@ def render_reachable(project: Project, views: list[View], fractions: dict[str, f
     which views it reaches: then every view is rendered. The codebook's views
     (:func:`gtkit.localize.localize.codebook_views`) are rendered too."""
     from ..queries import query_cameras
-    from .reach import codebook_views, query_names, reachable_views
+    from .reach import codebook_views, query_names, reachable_views, select_views
 
     try:
         names = query_names(project, localize_settings)
@@ -578,11 +578,13 @@ def render_reachable(project: Project, views: list[View], fractions: dict[str, f
     rounds = 0
     while True:
         cand = [v for v in views if fractions.get(v.name, min_valid) >= min_valid]
-        need = reachable_views(project, database_of(out, cam, cand), localize_settings, names, cams)
-        need |= np.array([v.name in book for v in cand], bool)
-        todo = [v for v, r in zip(cand, need) if r and v.name not in fractions]
-        log.info("render-db: round %d: %d of %d planned views reachable from %d queries, %d to render",
-                 rounds + 1, int(need.sum()), len(views), len(names), len(todo))
+        sub = select_views(database_of(out, cam, cand), localize_settings)   # the levels a run ranks
+        need = reachable_views(project, sub, localize_settings, names, cams)
+        want = {v.name for v, r in zip(sub.views, need) if r} | book
+        todo = [v for v in cand if v.name in want and v.name not in fractions]
+        log.info("render-db: round %d: %d of %d planned views reachable from %d queries (or the codebook's), "
+                 "%d to render",
+                 rounds + 1, len(want), len(views), len(names), len(todo))
         if not todo:
             return rounds
         render(todo)

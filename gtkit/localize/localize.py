@@ -67,7 +67,7 @@ from ..project import (Project, file_fingerprint, mark_stage_done, relative_path
 from .database import PAPER_PITCHES, Database, load_database
 from .executors import ExecutorSettings, SerialExecutor, iter_map, make_executor, run_map
 from .pnp import PnPSettings
-from .reach import codebook_views, query_names, reachable_views, sensor_priors, view_arrays
+from .reach import codebook_views, query_names, reachable_views, select_views, sensor_priors, view_arrays
 from .settings import XFEAT_FEATURES, FeatureSettings, LocalizeSettings  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
@@ -107,15 +107,6 @@ def settings_for(ablation: str = "default", base: LocalizeSettings = LocalizeSet
 
 def output_dir(project: Project, ablation: str = "default") -> Path:
     return project.paths.stage("localize" if ablation == "default" else f"localize-{ablation}")
-
-
-def select_views(db: Database, s: "LocalizeSettings") -> Database:
-    """The database subset a run uses (render ablations)."""
-    sub = db.subset(s.db_heights, s.db_paper_pitches)
-    if s.db_highest_only and sub.views:
-        top = max(v.height for v in sub.views)
-        sub = sub.subset((top,), None)
-    return sub
 
 
 def _settings_from_dict(d: dict) -> LocalizeSettings:
@@ -443,9 +434,11 @@ def render_missing_views(project: Project, s: LocalizeSettings, names: list[str]
     unrendered = database.planned_not_rendered(project)
     if not unrendered:
         return 0
-    cand = database.Database(db.root, db.camera, db.views + database.database_of(db.root, db.camera, unrendered).views)
+    cand = select_views(database.Database(db.root, db.camera,
+                                          db.views + database.database_of(db.root, db.camera, unrendered).views), s)
     need = reachable_views(project, cand, s, names, cameras)
-    missing = int(need[len(db.views):].sum())
+    todo = {v.name for v in unrendered}
+    missing = sum(1 for v, r in zip(cand.views, need) if r and v.name in todo)
     if missing:
         rec = json.loads((project.paths.stage(database.STAGE) / "stage.json").read_text())["settings"]
         fields = {f.name for f in dataclasses.fields(database.RenderDbSettings)}

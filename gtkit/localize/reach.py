@@ -28,6 +28,16 @@ def codebook_views(planned: list[str], s: LocalizeSettings) -> list[str]:
     return [names[i] for i in np.unique(np.round(np.linspace(0, len(names) - 1, n)).astype(int))]
 
 
+def select_views(db, s: LocalizeSettings):
+    """The database subset a run uses (render ablations: ``db_heights``, ``db_paper_pitches``,
+    ``db_highest_only``)."""
+    sub = db.subset(s.db_heights, s.db_paper_pitches)
+    if s.db_highest_only and sub.views:
+        top = max(v.height for v in sub.views)
+        sub = sub.subset((top,), None)
+    return sub
+
+
 def view_arrays(db) -> dict:
     """What the sensor priors read of the database views, as arrays (one row a view)."""
     return dict(ypr=np.array([[v.yaw, v.pitch, v.roll] for v in db.views]).reshape(-1, 3),
@@ -108,7 +118,7 @@ def sensor_priors(V: dict, s: LocalizeSettings, proj: Project, db, meta, cam: Ca
 
 PRIOR_FIELDS = ("rotation_prior", "gamma_o", "gps_radius_m", "position_prior", "prior_vlad_weight", "prior_angle_deg",
                 "gps_footprint_radius_m", "no_attitude_radius_m", "top_k", "fallback_rounds", "query_subset",
-                "codebook_views", "codebook_share")
+                "codebook_views", "codebook_share", "db_heights", "db_paper_pitches", "db_highest_only")
 
 
 def prior_settings_key(s: LocalizeSettings) -> str:
