@@ -25,7 +25,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -92,7 +92,7 @@ class RenderDbSettings:
     texture_detail: str = "views"
     # Which planned views are rendered: "reachable" = those some query's retrieval can rank among
     # the views it matches, from its GPS + gimbal priors and the project's [localize] settings
-    # (:func:`gtkit.localize.localize.reachable_views`; a query without them reaches every view its
+    # (:func:`gtkit.localize.reach.reachable_views`; a query without them reaches every view its
     # rotation prior keeps, a project without query photos gets every view); "all" = every view (the
     # paper's database, for queries not flown yet). localize renders any view its own settings reach
     # that is not on disk yet, so an ablation never runs on a database too small for it.
@@ -103,6 +103,13 @@ class RenderDbSettings:
 # like: changing them keeps every view already on disk (adding a pitch level renders only the new
 # level, and the feature cache of the localize stage, keyed by the same record, stays valid).
 VIEW_SET_FIELDS = ("paper_pitches", "min_valid_fraction", "views")
+
+
+def render_settings(d: dict) -> RenderDbSettings:
+    """:class:`RenderDbSettings` from their dict (a task's, or the ``settings`` a stage record keeps;
+    lists back to tuples, keys of other versions left out)."""
+    known = {f.name for f in fields(RenderDbSettings)}
+    return RenderDbSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in known})
 
 
 def view_record(settings: dict, inputs: dict) -> dict:
@@ -241,7 +248,7 @@ def _render_chunk(task) -> list[tuple[str, float]]:
     import cv2
 
     root, settings_d, views, ground_z, record = task
-    s = RenderDbSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings_d.items()})
+    s = render_settings(settings_d)
     out = Path(root) / "work" / STAGE
     _check_current(out, record)
     r = _renderer_for(root, s, ground_z)
@@ -559,9 +566,9 @@ def render_reachable(project: Project, views: list[View], fractions: dict[str, f
     first are all rendered and kept when it stops, and the database gives each query the ranking
     the whole grid would. Returns the rounds, or None when no query photo (or its camera) can say
     which views it reaches: then every view is rendered. The codebook's views
-    (:func:`gtkit.localize.localize.codebook_views`) are rendered too."""
+    (:func:`gtkit.localize.reach.codebook_views`) are rendered too."""
     from ..queries import query_cameras
-    from .reach import codebook_views, query_names, reachable_views, select_views
+    from .reach import query_names
 
     try:
         names = query_names(project, localize_settings)
@@ -572,16 +579,12 @@ def render_reachable(project: Project, views: list[View], fractions: dict[str, f
     if not names:
         log.info("render-db: no query photos: every view is rendered")
         return None
-    # and the views the VLAD codebook is trained on (spread over the grid: the same codebook as a
-    # database of every view)
-    book = set(codebook_views([v.name for v in views], localize_settings))
+    planned = [v.name for v in views]
     rounds = 0
     while True:
         cand = [v for v in views if fractions.get(v.name, min_valid) >= min_valid]
-        sub = select_views(database_of(out, cam, cand), localize_settings)   # the levels a run ranks
-        need = reachable_views(project, sub, localize_settings, names, cams)
-        want = {v.name for v, r in zip(sub.views, need) if r} | book
-        todo = [v for v in cand if v.name in want and v.name not in fractions]
+        want, todo = reachable_not_rendered(project, planned, cand, set(fractions), cam, out, localize_settings,
+                                            names, cams)
         log.info("render-db: round %d: %d of %d planned views reachable from %d queries (or the codebook's), "
                  "%d to render",
                  rounds + 1, len(want), len(views), len(names), len(todo))
@@ -589,6 +592,20 @@ def render_reachable(project: Project, views: list[View], fractions: dict[str, f
             return rounds
         render(todo)
         rounds += 1
+
+
+def reachable_not_rendered(project: Project, planned: list[str], cand: list[View], on_disk: set[str], cam: Camera,
+                           out: Path, localize_settings, names: list[str], cams: dict) -> tuple[set[str], list[View]]:
+    """One round of :func:`render_reachable`: among the candidate views ``cand`` (those not known to
+    be dropped), the names the queries reach over the levels a run ranks, with the VLAD codebook's
+    views (spread over the ``planned`` grid: the same codebook as a database of every view), and the
+    candidates among them not ``on_disk``."""
+    from .reach import codebook_views, reachable_views, select_views
+
+    sub = select_views(database_of(out, cam, cand), localize_settings)
+    need = reachable_views(project, sub, localize_settings, names, cams)
+    want = {v.name for v, r in zip(sub.views, need) if r} | set(codebook_views(planned, localize_settings))
+    return want, [v for v in cand if v.name in want and v.name not in on_disk]
 
 
 def _write_views(out: Path, views: list[View], fractions: dict[str, float], min_valid: float, cam: Camera,
@@ -639,6 +656,13 @@ class Database:
 
 
 def load_database(project: Project) -> Database:
+    return load_grid(project)[0]
+
+
+def load_grid(project: Project) -> tuple[Database, list[View], list[str]]:
+    """The rendered database (its kept views), the planned views not known to be dropped (kept, or
+    not rendered: no query reached them yet) and every planned view's name, from one read of
+    ``views.json``."""
     out = project.paths.stage(STAGE)
     vfile = out / "views.json"
     if not vfile.is_file() or not (out / "stage.json").is_file():
@@ -646,7 +670,13 @@ def load_database(project: Project) -> Database:
     d = json.loads(vfile.read_text())
     f = d["camera"].split()
     cam = Camera(f[0], int(f[1]), int(f[2]), tuple(float(x) for x in f[3:]))
-    return database_of(out, cam, [_view(vd) for vd in d["views"] if vd["kept"]])
+    kept, cand = [], []
+    for vd in d["views"]:
+        if vd["kept"] or vd.get("valid_fraction") is None:
+            cand.append(_view(vd))
+            if vd["kept"]:
+                kept.append(cand[-1])
+    return database_of(out, cam, kept), cand, [vd["name"] for vd in d["views"]]
 
 
 def _view(vd: dict) -> View:
@@ -661,10 +691,11 @@ def database_of(out: Path, cam: Camera, views: list[View]) -> Database:
 
 def planned_names(project: Project) -> list[str]:
     """Every planned view's name, rendered or not."""
-    return [vd["name"] for vd in json.loads((project.paths.stage(STAGE) / "views.json").read_text())["views"]]
+    return load_grid(project)[2]
 
 
 def planned_not_rendered(project: Project) -> list[View]:
     """The planned views not rendered (no query reached them yet)."""
-    d = json.loads((project.paths.stage(STAGE) / "views.json").read_text())
-    return [_view(vd) for vd in d["views"] if vd.get("valid_fraction") is None]
+    db, cand, _names = load_grid(project)
+    kept = {v.name for v in db.views}
+    return [v for v in cand if v.name not in kept]

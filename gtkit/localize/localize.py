@@ -298,6 +298,7 @@ def _context(ctx: dict):
 
             cameras = {n: [c.camera.to_line(), c.source] for n, c in query_cameras(proj, query_names(proj, s)).items()}
         _W.update(ctx_key=key, s=s, project=proj, db=db, vlad=Vlad(g["centers"]), G=G, described=described,
+                  has_descriptor=rows >= 0,
                   **view_arrays(db),
                   h5=h5py.File(ctx["features"], "r"), extractor=_extractor(s.features, db=False),
                   matcher=_matcher(s), cams={n: _camera(line) for n, (line, _src) in cameras.items()},
@@ -396,9 +397,8 @@ def _localize_query(W: dict, name: str) -> dict:
     score = np.zeros(len(db.views))
     score[W["described"]] = W["G"] @ W["vlad"].describe(fq.desc)
     key = score if pred is None else pred + s.prior_vlad_weight * score
-    ranked_from = np.zeros(len(db.views), bool)     # a view without a global descriptor is never ranked
-    ranked_from[W["described"]] = True              # (db_features "reachable": it could not have been)
-    keep = keep & ranked_from
+    keep = keep & W["has_descriptor"]    # a view without one is never ranked (db_features "reachable":
+                                         # it could not have been)
     ranked = rank_candidates(key, keep, near, s.top_k * (1 + max(0, s.fallback_rounds)))
     sec["retrieval"] = time.perf_counter() - t
     rounds = [ranked[k:k + s.top_k] for k in range(0, len(ranked), s.top_k)]
@@ -430,22 +430,16 @@ def render_missing_views(project: Project, s: LocalizeSettings, names: list[str]
     returns how many were missing."""
     from . import database
 
-    db = load_database(project)
-    unrendered = database.planned_not_rendered(project)
-    if not unrendered:
+    db, cand, planned = database.load_grid(project)
+    if len(cand) == len(db.views):              # every view not dropped is rendered
         return 0
-    cand = select_views(database.Database(db.root, db.camera,
-                                          db.views + database.database_of(db.root, db.camera, unrendered).views), s)
-    need = reachable_views(project, cand, s, names, cameras)
-    todo = {v.name for v in unrendered}
-    missing = sum(1 for v, r in zip(cand.views, need) if r and v.name in todo)
-    if missing:
+    _want, todo = database.reachable_not_rendered(project, planned, cand, {v.name for v in db.views}, db.camera,
+                                                  db.root, s, names, cameras)
+    if todo:
         rec = json.loads((project.paths.stage(database.STAGE) / "stage.json").read_text())["settings"]
-        fields = {f.name for f in dataclasses.fields(database.RenderDbSettings)}
-        rs = database.RenderDbSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in rec.items() if k in fields})
-        log.info("localize: %d database views these settings reach are not rendered yet: rendering them", missing)
-        database.run(project, rs, executor, localize_settings=s)
-    return missing
+        log.info("localize: %d database views these settings reach are not rendered yet: rendering them", len(todo))
+        database.run(project, database.render_settings(rec), executor, localize_settings=s)
+    return len(todo)
 
 
 def _match_and_solve(W: dict, rec: dict, fq, cam: Camera, prior_R, order, sec: dict) -> None:
@@ -542,9 +536,13 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
     from ..queries import query_cameras
     from .features import CODE_VERSION
 
-    qcams = {n: [qc.camera.to_line(), qc.source] for n, qc in query_cameras(project, names).items()}
-    n_missing = render_missing_views(project, settings, names, {n: _camera(line) for n, (line, _s) in qcams.items()},
-                                     executor)
+    if settings.db_features not in ("reachable", "all"):
+        raise GtkitError(f"[localize] db_features must be \"reachable\" or \"all\", not {settings.db_features!r}",
+                         project.paths.root / "project.toml")
+    qc = query_cameras(project, names)
+    qcams = {n: [c.camera.to_line(), c.source] for n, c in qc.items()}
+    cams = {n: _camera(line) for n, (line, _src) in qcams.items()}   # as the workers read them
+    n_missing = render_missing_views(project, settings, names, cams, executor)
     inputs = {"render_db": file_fingerprint(dbdir / "stage.json"), "queries": settings_key(names),
               "cameras": settings_key(qcams), "feature_code": CODE_VERSION.get(settings.features.extractor, 1)}
     if not force and stage_done(out, settings, inputs):
@@ -560,12 +558,8 @@ def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSett
                          f"{settings.db_heights or 'any'} and pitches {settings.db_paper_pitches or 'any'}, the "
                          f"database holds (height, pitch) {have}; render it with those levels "
                          "(gtkit render-db --heights ... --pitches ...)", dbdir)
-    if settings.db_features not in ("reachable", "all"):
-        raise GtkitError(f"[localize] db_features must be \"reachable\" or \"all\", not {settings.db_features!r}",
-                         project.paths.root / "project.toml")
     views = None
     if settings.db_features == "reachable":
-        cams = {n: _camera(line) for n, (line, _src) in qcams.items()}
         reach = reachable_views(project, db, settings, names, cams)
         views = {v.name for v, r in zip(db.views, reach) if r}
         log.info("localize: %d of %d database views are reachable from the queries' sensor priors",
