@@ -47,9 +47,13 @@ def test_register_without_tiepoints_places_every_sequence(no_clicks, tmp_path):
     err = pose_errors(est, truth, sorted(est))
     pos = np.array([e["pos_err_m"] for e in err.values()])
     rot = np.array([e["rot_err_deg"] for e in err.values()])
-    # tiny photos (640 x 480, ~0.2 m a pixel on the ground); with the sample's clicks: ~0.2 m median
+    # tiny photos (640 x 480, ~0.2 m a pixel on the ground, 1 px ~0.11 deg); with the sample's clicks:
+    # ~0.2 m median. The reference block differs run to run in its last digits (1e-9 m: the database
+    # is identical, the mapping is not) and the register's discrete steps carry that into its result:
+    # over 11 fresh SfMs of this sample (2026-12-05) medians 0.09-0.23 m and 0.06-0.14 deg (CI once
+    # 0.175 deg), worst photos 0.35-0.77 m and 0.16-0.30 deg. The bounds sit above that spread.
     assert np.median(pos) < 0.30 and pos.max() < 1.0, pos
-    assert np.median(rot) < 0.15 and rot.max() < 0.5, rot
+    assert np.median(rot) < 0.25 and rot.max() < 0.5, rot
     rep = gt_report.run(Project.load(root))
     assert rep["sequences_needing_clicks"] == {} and rep["median_pos_err_m"] == pytest.approx(np.median(pos))
 

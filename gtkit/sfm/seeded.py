@@ -214,7 +214,9 @@ def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray],
         copts = pycolmap.DatabaseCacheOptions()
         copts.min_num_matches = options.min_num_matches
         cache = pycolmap.DatabaseCache.create(d, copts)
-    tri, mopts = options.triangulation, options.mapper
+    # the pipeline's own copies: they carry its random_seed (0) and threads. options.triangulation and
+    # options.mapper as set hold random_seed -1 (a new seed each run): the block differed run to run
+    tri, mopts = options.get_triangulation(), options.get_mapper()
     clock, last = {}, [t0]
 
     def lap(step):
