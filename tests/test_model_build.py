@@ -385,6 +385,31 @@ def test_colour_balancing_at_seams(built):
     assert base_balanced < base + 0.5                                              # one exposure: no harm
 
 
+def test_depth_maps_on_a_dask_cluster_equal_this_process(built, tmp_path):
+    """``gtkit model build --executor dask``: the depth maps of 12 photos (two tasks) computed on a Dask
+    LocalCluster of two workers are the fixture's, made in this process, bit for bit."""
+    pytest.importorskip("dask.distributed")
+    from gtkit.localize.executors import ExecutorSettings
+    from gtkit.model import depth as D
+    from gtkit.model.build import DEPTH_CHUNK, depth_maps
+    from gtkit.model.views import choose_neighbours, load_views
+
+    root, _ = built
+    proj = Project.load(root)
+    views, _ = load_views(proj, FAST)
+    nb, _ = choose_neighbours(views, FAST)
+    folder = next((root / "work" / "model" / "depth").iterdir())
+    names = [n for n in nb if D.depth_file(folder, n).is_file()][5:5 + DEPTH_CHUNK + 4]
+    work = tmp_path / "depth"
+    work.mkdir()
+    failed = depth_maps(proj, views, {n: nb[n] for n in names}, FAST, work, show=False,
+                        executor=ExecutorSettings("dask", 2))
+    assert failed == {}
+    for n in names:
+        a, b = D.read_depth(D.depth_file(work, n)), D.read_depth(D.depth_file(folder, n))
+        assert np.array_equal(a, b, equal_nan=True), n
+
+
 def test_build_killed_during_depth_maps_resumes(built, tmp_path):
     """``gtkit model build`` SIGKILLed while it computes depth maps, then run again: the maps finished
     before the kill are kept (same files, same mtimes), only the others are computed, and the model

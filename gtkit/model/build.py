@@ -57,8 +57,14 @@ def _reset_peak() -> None:
 
 
 def _cpu_s() -> float:
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+    """CPU seconds of this process and its reaped children (an executor's local workers)."""
+    r, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime + c.ru_utime + c.ru_stime
+
+
+def _children_peak_gb() -> float:
+    """The largest peak resident memory of a reaped child process (GB; 0 without any)."""
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024 / 1e9
 
 
 def _mark(step: str, t: dict, mem: dict, cpu: dict) -> None:
@@ -79,8 +85,18 @@ def _bar(total: int, desc: str, show: bool):
     return progress_bar(total, desc, unit="photo", show=show)
 
 
-def depth_maps(project: Project, views, neighbours, settings: ModelSettings, folder: Path, show: bool = True) -> dict:
-    """Compute the missing depth maps (one file a photo); returns {name: reason} of failed photos."""
+def depth_maps(project: Project, views, neighbours, settings: ModelSettings, folder: Path, show: bool = True,
+               executor=None) -> dict:
+    """Compute the missing depth maps (one file a photo); returns {name: reason} of failed photos.
+    ``executor``: None computes them here, one after the other; an
+    :class:`~gtkit.localize.executors.ExecutorSettings` runs runs of :data:`DEPTH_CHUNK` photos as tasks
+    there (local processes or a Dask cluster, :func:`_depth_chunk`): the same maps, written by the
+    workers, each as soon as it is done (a killed run keeps them)."""
+    for f in folder.glob(".*.tmp*"):      # a map being written when a run was killed
+        f.unlink(missing_ok=True)
+    todo = [(n, nb) for n, nb in neighbours.items() if not D.depth_file(folder, n).is_file()]
+    if executor is not None and todo:
+        return _depth_maps_on(executor, project, views, neighbours, todo, settings, folder, show)
     gray: dict[str, np.ndarray] = {}
 
     def img(n):
@@ -88,27 +104,78 @@ def depth_maps(project: Project, views, neighbours, settings: ModelSettings, fol
             gray[n] = load_image(project, views[n], gray=True)
         return gray[n]
 
-    for f in folder.glob(".*.tmp*"):      # a map being written when a run was killed
-        f.unlink(missing_ok=True)
     failed = {}
-    t0, done = time.time(), 0
+    t0 = time.time()
     with _bar(len(neighbours), "depth maps", show) as bar:
-        for i, (n, nb) in enumerate(neighbours.items()):
-            out = D.depth_file(folder, n)
-            if out.is_file():
-                bar.update(1)
-                continue
+        bar.update(len(neighbours) - len(todo))
+        for done, (n, nb) in enumerate(todo):
             if done and done % 25 == 0:
-                log.info("depth maps: %d of %d there, %d computed in this run (%.1f s a photo)", i, len(neighbours),
-                         done, (time.time() - t0) / done)
-            done += 1
-            pair = [d for m in nb if (d := D.pair_depth(views[n], views[m], img(n), img(m), settings)) is not None]
-            if len(pair) < settings.min_pair_agree:
-                failed[n] = f"only {len(pair)} neighbour pair(s) could be rectified"
-            else:
-                dm = D.combine_pairs(pair, settings)
-                D.write_depth(out, dm, {"neighbours": nb})
+                log.info("depth maps: %d of %d there, %d computed in this run (%.1f s a photo)",
+                         len(neighbours) - len(todo) + done, len(neighbours), done, (time.time() - t0) / done)
+            why = _depth_map(n, nb, views, img, settings, folder)
+            if why:
+                failed[n] = why
             bar.update(1)
+    return failed
+
+
+def _depth_map(n: str, nb: list[str], views, img, settings: ModelSettings, folder: Path) -> str | None:
+    """One photo's depth map from its stereo neighbours, written to its file; why it failed, or None."""
+    pair = [d for m in nb if (d := D.pair_depth(views[n], views[m], img(n), img(m), settings)) is not None]
+    if len(pair) < settings.min_pair_agree:
+        return f"only {len(pair)} neighbour pair(s) could be rectified"
+    D.write_depth(D.depth_file(folder, n), D.combine_pairs(pair, settings), {"neighbours": nb})
+    return None
+
+
+# photos a depth task: consecutive photos (a flight strip) share neighbours, whose images the task
+# reads once; small enough that two workers stay busy to the end and a killed run loses little
+DEPTH_CHUNK = 8
+
+
+def _depth_chunk(task: tuple) -> dict[str, str]:
+    """An executor task: the depth maps of a run of photos (see :func:`depth_maps`), {name: why} of
+    those that failed."""
+    root, views, chunk, settings, folder = task
+    project = Project.load(root)
+    gray: dict[str, np.ndarray] = {}
+
+    def img(n):
+        if n not in gray:
+            gray[n] = load_image(project, views[n], gray=True)
+        return gray[n]
+
+    failed = {}
+    for n, nb in chunk:
+        if D.depth_file(Path(folder), n).is_file():  # another run finished it meanwhile
+            continue
+        why = _depth_map(n, nb, views, img, settings, Path(folder))
+        if why:
+            failed[n] = why
+    return failed
+
+
+def _depth_maps_on(executor, project: Project, views, neighbours, todo, settings: ModelSettings, folder: Path,
+                   show: bool) -> dict:
+    from ..localize.executors import iter_map, make_executor
+
+    tasks = []
+    for k in range(0, len(todo), DEPTH_CHUNK):
+        chunk = todo[k:k + DEPTH_CHUNK]
+        need = {n for n, nb in chunk} | {m for _n, nb in chunk for m in nb}
+        tasks.append((str(project.paths.root), {n: views[n] for n in need}, chunk, settings, str(folder)))
+    ex = make_executor(executor)
+    failed: dict[str, str] = {}
+    try:
+        log.info("depth maps: %d to compute in %d tasks on %s (%d workers)", len(todo), len(tasks), ex.name,
+                 getattr(ex, "workers", 1))
+        with _bar(len(neighbours), "depth maps", show) as bar:
+            bar.update(len(neighbours) - len(todo))
+            for task, res in zip(tasks, iter_map(ex, _depth_chunk, tasks)):
+                failed.update(res)
+                bar.update(len(task[2]))
+    finally:
+        ex.close()
     return failed
 
 
@@ -224,8 +291,9 @@ def depth_folder(project: Project, settings: ModelSettings, method: str) -> Path
 
 
 def run(project: Project | str | Path, settings: ModelSettings | None = None, *, force: bool = False,
-        use: bool | None = None, show: bool = True) -> dict:
-    """Build the reference model; returns the summary (also in ``work/model/stage.json``)."""
+        use: bool | None = None, show: bool = True, executor=None) -> dict:
+    """Build the reference model; returns the summary (also in ``work/model/stage.json``).
+    ``executor``: where the SGBM depth maps run (:func:`depth_maps`; None: in this process)."""
     project = project if isinstance(project, Project) else Project.load(project)
     settings = settings or ModelSettings()
     method = patchmatch.resolve_method(settings.depth_method)     # a path that cannot run is refused first
@@ -256,9 +324,12 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
     if method == "patchmatch":
         failed = patchmatch.depth_maps(project, views, neighbours, settings, folder, block, show)
     else:
-        failed = depth_maps(project, views, neighbours, settings, folder, show)
+        kids = _children_peak_gb()
+        failed = depth_maps(project, views, neighbours, settings, folder, show, executor=executor)
     skipped.update(failed)
     _mark("depth", t, mem, cpu)
+    if method != "patchmatch" and executor is not None and _children_peak_gb() > kids:
+        mem["depth"] = max(mem["depth"], _children_peak_gb())   # a local worker's peak, if more than this process's
     _step_done("depth", t, mem, f"{len(neighbours) - len(failed)} depth maps ({method})")
 
     cloud = fuse(project, views, neighbours, settings, folder, show, force=force)
