@@ -127,10 +127,18 @@ def _sfm_settings(project):
     return resolve(SfmSettings(), "sfm", project)
 
 
+def _on_cluster(opts):
+    """The executor for the SfM's features + matching and the model's depth maps: a Dask cluster when
+    the run was given one (``--executor dask``), else None (in the stage's own process, as ``gtkit sfm``
+    and ``gtkit model build`` run by default); render-db and localize use ``opts.executor`` whatever it is."""
+    ex = opts.executor
+    return ex if ex is not None and getattr(ex, "kind", None) == "dask" else None
+
+
 def st_sfm_reference(project, opts):
     from .sfm.blocks import run_reference
 
-    r = run_reference(project, _sfm_settings(project))
+    r = run_reference(project, _sfm_settings(project), executor=_on_cluster(opts))
     return {"n_registered": r.get("n_registered"), "n_images": r.get("n_images")}
 
 
@@ -143,7 +151,7 @@ def st_model(project, opts):
     if state == "imported":
         raise Skip(f"a model was imported or delivered ({_rel(project, path)}); not building one "
                    "(`gtkit model build SITE --use` builds one and makes it the project's)")
-    r = run(project, resolve(ModelSettings(), "model_build", project))
+    r = run(project, resolve(ModelSettings(), "model_build", project), executor=_on_cluster(opts))
     from .view.model import prepare_cache
 
     prepare_cache(project)          # the 3D view's decimated copy, as `gtkit model build` makes it
@@ -155,7 +163,7 @@ def st_sfm_queries(project, opts):
 
     if not project.paths.query_sequences():
         raise Skip("no query sequences (gtkit init --queries)")
-    res = run_queries(project, _sfm_settings(project))
+    res = run_queries(project, _sfm_settings(project), executor=_on_cluster(opts))
     return {seq: ({"error": r["error"]} if "error" in r else {"n_registered": r["n_registered"], "n_images": r["n_images"]})
             for seq, r in res.items()}
 

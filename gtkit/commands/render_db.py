@@ -48,7 +48,8 @@ def _executor_args(p):
     p.add_argument("--executor", choices=("serial", "local", "dask"), default="local",
                    help="where fan-out work runs (default: local processes)")
     p.add_argument("--workers", type=int, default=0, help="worker processes (0 = min(2, CPUs))")
-    p.add_argument("--dask-address", default=None, help="existing Dask scheduler (default: a LocalCluster)")
+    p.add_argument("--dask-address", "--address", dest="dask_address", default=None,
+                   help="existing Dask scheduler for --executor dask (default: a LocalCluster)")
 
 
 def executor_settings(args):

@@ -17,7 +17,9 @@ def register(sub):
                     "absent is skipped with the reason, a failing stage stops the run (exit 2) naming it;\n"
                     "a query sequence that could not be placed is listed as a problem (exit 1).\n"
                     "Finished stages are up to date and only re-read. Stages: " + ", ".join(STAGES) + ".\n"
-                    "Summary: printed and written to reports/run.json.")
+                    "Summary: printed and written to reports/run.json. --executor dask sends every stage that\n"
+                    "splits into tasks to the cluster: the SfM's features and matching, the model's depth maps,\n"
+                    "render-db, localize.")
     p.add_argument("project")
     p.add_argument("--from", dest="start", default=None, metavar="STAGE", choices=STAGES,
                    help="start at this stage (the earlier ones are not run; their outputs are read)")
