@@ -47,11 +47,15 @@ STAGES = [
     ("  mapping", None, "photos"),
     ("sfm_queries", "sfm_queries/*", "queries"),
     ("register", "register", "queries"),
+    ("exports", "export_*", "area_km2"),      # DSM, orthophoto, mesh, coordinates
+    ("overlays", None, "queries"),            # reports/overlays/alignment.json
     ("model", "model", "photos"),
     ("render_db", "render_db", "views"),
     ("localize", "localize", "views"),
     ("  db features", None, "views"),
     ("track", "track", "queries"),
+    ("main job (one process)", None, "area_km2"),   # reports/scale_run.json: pipelines.full measured whole
+    ("sample + main job", None, "area_km2"),
 ]
 
 
@@ -231,6 +235,23 @@ def stage_costs(root: Path) -> dict[str, dict]:
         if k in steps:
             out[f"  {k}"] = {"wall_s": round(steps[k], 1), "cpu_s": cpu_steps.get(k), "peak_gb": None,
                              "disk_mb": None, "old": False}
+    ali = _json(root / "reports" / "overlays" / "alignment.json")
+    secs = _json(root / "reports" / "summary.json").get("seconds") or {}
+    if ali.get("cost"):
+        out["overlays"] = {**_cost_of(ali), "old": False}
+    elif secs.get("overlays") is not None:  # older overlays: the main job's wall time only
+        out["overlays"] = {"wall_s": secs["overlays"], "cpu_s": None, "peak_gb": None, "old": True,
+                           "disk_mb": round(disk_bytes(root / "reports" / "overlays") / 2**20, 1)}
+    if "full" in runs:
+        f = runs["full"]
+        out["main job (one process)"] = {"wall_s": f["wall_s"], "cpu_s": f["cpu_s"], "peak_gb": f["peak_tree_rss_gb"],
+                                         "disk_mb": round(disk_bytes(root) / 2**20, 1), "old": False}
+        if "sample" in runs:
+            s = runs["sample"]
+            out["sample + main job"] = {"wall_s": round(s["wall_s"] + f["wall_s"], 1),
+                                        "cpu_s": round(s["cpu_s"] + f["cpu_s"], 1),
+                                        "peak_gb": max(s["peak_tree_rss_gb"], f["peak_tree_rss_gb"]),
+                                        "disk_mb": round(disk_bytes(root) / 2**20, 1), "old": False}
     loc = _json(work / "localize" / "stage.json").get("summary", {})
     if loc.get("db_features_s") is not None and loc.get("db_features_views"):
         n = loc["db_features_views"]

@@ -479,8 +479,9 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None,
 
     from ..io.atomic import atomic_path, write_json
     from ..localize.database import model_fingerprint
-    from ..project import Project
+    from ..project import Project, StageClock
 
+    clock = StageClock()  # what the overlays cost (wall, CPU, peak memory, disk): the scale table reads it
     st = settings or OverlaySettings()
     for m in st.modes:
         if m not in MODES:
@@ -537,6 +538,7 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None,
                "median_misalignment_px": med("misalignment_px"),
                "median_edge_distance_px": med("edge_distance_px"),
                "n_rendered": len(names) - n_reused,
+               "cost": clock.cost([out]),
                "images": per,
                "keys": keys}
     from ..project import relative_paths
