@@ -13,6 +13,7 @@ from __future__ import annotations
 
 def register(sub):
     from ..model.settings import ModelSettings as S
+    from .render_db import _executor_args
 
     p = sub.add_parser("model", help="build the reference model (dense depth, fusion, surface, texture) "
                        "from the reference photos; compare two models")
@@ -31,12 +32,8 @@ def register(sub):
     b.add_argument("--use", action="store_true",
                    help="make the built model the project's model even when a delivered one exists "
                         "(the delivered files move to model/delivered/)")
-    b.add_argument("--executor", choices=("serial", "local", "dask"), default=None,
-                   help="compute the SGBM depth maps as tasks there: local processes or a Dask cluster "
-                        "(default: in this process; the maps are the same)")
-    b.add_argument("--workers", type=int, default=0, help="worker processes for --executor (0 = min(2, CPUs))")
-    b.add_argument("--dask-address", "--address", dest="dask_address", default=None,
-                   help="existing Dask scheduler for --executor dask (default: a LocalCluster)")
+    _executor_args(b, None, "compute the SGBM depth maps as tasks there: local processes or a Dask cluster "
+                            "(default: in this process; the maps are the same)")
     b.add_argument("--force", action="store_true", help="rebuild even when up to date (finished depth maps are kept)")
     b.set_defaults(func=run_build)
 
@@ -54,21 +51,13 @@ def run_build(args):
     from ..model.settings import ModelSettings
     from ..project import Project
     from ..settings import resolve
+    from .render_db import executor_settings
 
     project = Project.load(args.project)
     s = resolve(ModelSettings(), "model_build", project, {
         "max_image_size": args.max_image_size, "neighbours": args.neighbours, "max_triangles": args.max_triangles,
         "poisson_depth": args.poisson_depth, "voxel_m": args.voxel, "depth_method": args.depth_method})
-    ex = None
-    if args.executor:
-        from ..localize.executors import ExecutorSettings
-
-        ex = ExecutorSettings(args.executor, args.workers, args.dask_address)
-    elif args.dask_address:
-        from ..errors import GtkitError
-
-        raise GtkitError("--dask-address needs --executor dask")
-    r = run(project, s, force=args.force, use=True if args.use else None, executor=ex)
+    r = run(project, s, force=args.force, use=True if args.use else None, executor=executor_settings(args))
     print(f"model: {r['model']} ({r['triangles']} triangles, {r['parts']} textured parts) from {r['depth_maps']} "
           f"depth maps ({r.get('depth_method', 'sgbm')}) of {r['photos']} photos; {r['points']} fused points")
     print("seconds " + ", ".join(f"{k} {v}" for k, v in r["seconds"].items())

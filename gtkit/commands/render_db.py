@@ -44,17 +44,26 @@ def register(sub):
     p.set_defaults(func=run)
 
 
-def _executor_args(p):
-    p.add_argument("--executor", choices=("serial", "local", "dask"), default="local",
-                   help="where fan-out work runs (default: local processes)")
-    p.add_argument("--workers", type=int, default=0, help="worker processes (0 = min(2, CPUs))")
+def _executor_args(p, default: str | None = "local", help: str = "where fan-out work runs (default: local processes)"):
+    """--executor, --workers, --dask-address (render-db, localize, run; sfm and model build with no
+    default: their work runs in the command's own process unless told)."""
+    p.add_argument("--executor", choices=("serial", "local", "dask"), default=default, help=help)
+    p.add_argument("--workers", type=int, default=0, help="worker processes for --executor (0 = min(2, CPUs))")
     p.add_argument("--dask-address", "--address", dest="dask_address", default=None,
                    help="existing Dask scheduler for --executor dask (default: a LocalCluster)")
 
 
 def executor_settings(args):
+    """The flags of :func:`_executor_args` as ExecutorSettings; None where no --executor was given
+    (and it has no default)."""
     from ..localize.executors import ExecutorSettings
 
+    if args.executor is None:
+        if args.dask_address:
+            from ..errors import GtkitError
+
+            raise GtkitError("--dask-address needs --executor dask")
+        return None
     return ExecutorSettings(args.executor, args.workers, args.dask_address)
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 
 def register(sub):
+    from .render_db import _executor_args
+
     p = sub.add_parser("sfm", help="SfM of the reference block (georegistered) or of each query sequence")
     p.add_argument("project")
     p.add_argument("--block", choices=["reference", "queries"], required=True)
@@ -25,11 +27,7 @@ def register(sub):
                    help="incremental (COLMAP), global (GLOMAP), seeded (reference block: photos start at their "
                         "RTK position + gimbal attitude, see sfm.seeded) or auto (default: seeded where the photos "
                         "allow it, else incremental)")
-    p.add_argument("--executor", choices=("serial", "local", "dask"), default=None,
-                   help="run feature extraction and matching as tasks there (default: in this process)")
-    p.add_argument("--workers", type=int, default=0, help="worker processes for --executor (0 = min(2, CPUs))")
-    p.add_argument("--dask-address", "--address", dest="dask_address", default=None,
-                   help="existing Dask scheduler for --executor dask (default: a LocalCluster)")
+    _executor_args(p, None, "run feature extraction and matching as tasks there (default: in this process)")
     p.add_argument("--force", action="store_true", help="recompute even if a finished run matches")
     p.set_defaults(func=run)
 
@@ -71,6 +69,7 @@ def _print_reference(r: dict) -> None:
 
 def run(args):
     from ..project import Project
+    from .render_db import executor_settings
     from ..settings import resolve
     from ..sfm.blocks import SfmSettings, run_queries, run_reference
 
@@ -81,15 +80,7 @@ def run(args):
         "georegister.gps_inlier_m": args.gps_inlier_m, "georegister.gcp_accuracy_m": args.gcp_accuracy,
         "georegister.checkpoints": args.checkpoints.split(",") if args.checkpoints else None,
         "georegister.use": args.georegister_with, "mapper": args.mapper})
-    ex = None
-    if args.executor:
-        from ..localize.executors import ExecutorSettings
-
-        ex = ExecutorSettings(args.executor, args.workers, args.dask_address)
-    elif args.dask_address:
-        from ..errors import GtkitError
-
-        raise GtkitError("--dask-address needs --executor dask")
+    ex = executor_settings(args)
     if args.block == "reference":
         _print_reference(run_reference(project, s, force=args.force, executor=ex))
     else:

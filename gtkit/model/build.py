@@ -97,13 +97,7 @@ def depth_maps(project: Project, views, neighbours, settings: ModelSettings, fol
     todo = [(n, nb) for n, nb in neighbours.items() if not D.depth_file(folder, n).is_file()]
     if executor is not None and todo:
         return _depth_maps_on(executor, project, views, neighbours, todo, settings, folder, show)
-    gray: dict[str, np.ndarray] = {}
-
-    def img(n):
-        if n not in gray:
-            gray[n] = load_image(project, views[n], gray=True)
-        return gray[n]
-
+    img = _grey_pictures(project, views)
     failed = {}
     t0 = time.time()
     with _bar(len(neighbours), "depth maps", show) as bar:
@@ -117,6 +111,19 @@ def depth_maps(project: Project, views, neighbours, settings: ModelSettings, fol
                 failed[n] = why
             bar.update(1)
     return failed
+
+
+def _grey_pictures(project: Project, views):
+    """``img(name)``: the photo's grey picture at the working size, read once and kept (a photo is the
+    stereo neighbour of several others)."""
+    gray: dict[str, np.ndarray] = {}
+
+    def img(n):
+        if n not in gray:
+            gray[n] = load_image(project, views[n], gray=True)
+        return gray[n]
+
+    return img
 
 
 def _depth_map(n: str, nb: list[str], views, img, settings: ModelSettings, folder: Path) -> str | None:
@@ -137,14 +144,7 @@ def _depth_chunk(task: tuple) -> dict[str, str]:
     """An executor task: the depth maps of a run of photos (see :func:`depth_maps`), {name: why} of
     those that failed."""
     root, views, chunk, settings, folder = task
-    project = Project.load(root)
-    gray: dict[str, np.ndarray] = {}
-
-    def img(n):
-        if n not in gray:
-            gray[n] = load_image(project, views[n], gray=True)
-        return gray[n]
-
+    img = _grey_pictures(Project.load(root), views)
     failed = {}
     for n, nb in chunk:
         if D.depth_file(Path(folder), n).is_file():  # another run finished it meanwhile
@@ -321,10 +321,10 @@ def run(project: Project | str | Path, settings: ModelSettings | None = None, *,
         raise GtkitError("no photo has enough neighbours for stereo (see the reasons with -v)", block)
     folder = depth_folder(project, settings, method)
     folder.mkdir(parents=True, exist_ok=True)
+    kids = _children_peak_gb()
     if method == "patchmatch":
         failed = patchmatch.depth_maps(project, views, neighbours, settings, folder, block, show)
     else:
-        kids = _children_peak_gb()
         failed = depth_maps(project, views, neighbours, settings, folder, show, executor=executor)
     skipped.update(failed)
     _mark("depth", t, mem, cpu)
