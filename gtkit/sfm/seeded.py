@@ -29,7 +29,10 @@ bundle adjustment with the positions as priors (gtkit.sfm.prior_ba) refines pose
    nothing), or the attitudes are off by more than a heading error, the whole block goes back to
    the incremental mapper, with that reason (the real DJI consumer block of tests/test_sfm.py, its
    cameras taken as calibrated: the seeding BA turned its photos 46 deg in common; tiny seed 0 with
-   a 1 m wandering GPS error added: 20 of 45 photos off their priors).
+   a 1 m wandering GPS error added: 20 of 45 photos off their priors);
+6. **final BA**: the tracks merged and filtered at the mapper's thresholds, the photos placed again
+   in, one more pose-prior BA to convergence (the seeding BA of step 3 stops after
+   ``SEED_BA_FIRST_ITERATIONS``: its job is the block's turn and the misfits, not the last millimetre).
 
 The result is a block in the project frame; gtkit.sfm.blocks georegisters it (a Sim(3) near the
 identity), checks it for plausibility and holds it by its positions as it does any mapper's block.
@@ -55,10 +58,14 @@ log = logging.getLogger(__name__)
 MAX_PRIOR_ACCURACY_M = 0.5
 MIN_SEEDED_SHARE = 0.95        # of the block's photos with a position and a gimbal attitude
 SEED_SIGMA_M = 0.25            # position sigma in the seeding BA (a stated accuracy, where smaller)
-# iterations of the seeding BA. Medium seed 6 (same database, loaded): 8 -> 30: mapping 50 -> 99 CPU s, but
-# the position-held BA after georegistration 187 -> 66 CPU s (it started further off), worst camera
-# 0.089 -> 0.081 m (incremental: 0.073 m); small seed 13: 15 -> 8 saved 1.4 CPU s, same cameras
+# iterations of the final BA. Medium seed 6 (same database, loaded), when it was the only BA: 8 -> 30: mapping
+# 50 -> 99 CPU s, but the position-held BA after georegistration 187 -> 66 CPU s (it started further off),
+# worst camera 0.089 -> 0.081 m (incremental: 0.073 m)
 SEED_BA_ITERATIONS = 30
+# the seeding BA before the tracks are merged and filtered stops after this many: the final BA (above's
+# iterations, on the merged, filtered tracks, the photos placed by their matches in) does the rest. Medium
+# seed 7, same database, idle: 30 + 30 -> 10 + 30: mapping 102 -> 63 s (142 -> 79 CPU s), cameras equal
+SEED_BA_FIRST_ITERATIONS = 10
 SEED_BA_ROUNDS = 4             # seeding BA + Sim(3) onto the positions, until the Sim(3) turns less than
 SEED_TURN_DONE_DEG = 0.3       # this many degrees (small 14: a 0.14 deg turn cost a second BA, for nothing)
 SEED_ATTEMPTS = 3              # seedings at most (each with the common turn the last one found taken out)
@@ -233,7 +240,7 @@ def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray],
         # positions turns it back, cameras and points alike, and the BA goes on from there
         turns = []
         for _ in range(SEED_BA_ROUNDS):
-            _prior_ba(rec, positions, set(), accuracy, num_threads, SEED_BA_ITERATIONS)
+            _prior_ba(rec, positions, set(), accuracy, num_threads, SEED_BA_FIRST_ITERATIONS)
             turns.append(_onto_priors(rec, [rec.images[i].name for i in seeds], positions))
             if turns[-1] is None or turns[-1] < SEED_TURN_DONE_DEG:
                 break
@@ -308,9 +315,11 @@ def seeded_mapping(db: Path, names: list[str], positions: dict[str, np.ndarray],
     outliers = set(misfit) | set(failed)
     if suspects or left:
         mapper.complete_and_merge_tracks(tri)
-        _prior_ba(rec, positions, outliers, accuracy, num_threads, SEED_BA_ITERATIONS)
-        mapper.filter_points(mopts)
         lap("photos placed by their matches")
+    # the final BA, always: on the merged, filtered tracks (and the photos placed again), to convergence
+    _prior_ba(rec, positions, outliers, accuracy, num_threads, SEED_BA_ITERATIONS)
+    mapper.filter_points(mopts)
+    lap("final bundle adjustment")
     mapper.filter_frames(mopts)
     clock["total"] = round(time.time() - t0, 1)
     record.update({"misfits": misfit, "placed_by_matches": placed, "not_registered": failed,
