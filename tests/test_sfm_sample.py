@@ -113,6 +113,10 @@ def test_too_few_tiepoints_fails_that_sequence_only(small, tmp_path):
     res = register.run(dst)
     s3 = res["sequences"]["seq3"]
     assert s3["status"] == "registered" and s3["registered_by"] == "automatic matches" and "only" in s3["clicks"], s3
+    # its clicks still go into the joint BA, and are counted there as its own
+    rows = {i: res["tiepoints"][i] for i in (t.id for t in seq3[:2]) if i in res["tiepoints"]}
+    assert rows and all(r["sequence"] == "seq3" for r in rows.values()), rows
+    assert s3["n_tiepoints_final_ba"] == sum(r["in_final_ba"] for r in rows.values()), (s3, rows)
     # with that turned off, only that sequence fails, with the reason
     s = register.RegisterSettings()
     s.bootstrap.enabled = False

@@ -1250,8 +1250,13 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
         if tid.startswith(AUTO_PREFIX):
             continue
         seq, s = status_by_id.get(tid, (None, None))
+        note = s.reason if s else "not usable for the Sim(3)"
+        if seq is None:   # its sequence was placed by the automatic matches: its clicks still count in the BA
+            seq = next((n.split("/")[1] for n in clicks[tid] if n.startswith(prefixes)), None)
+            if seq is not None and seq_report[seq].get("registered_by") == "automatic matches":
+                note = "its sequence was placed by the automatic matches (its clicks not used for the Sim(3))"
         row = {"sequence": seq, "sim3_inlier": bool(s and s.inlier), "sim3_residual_m": s.sim3_residual_m if s else None,
-               "in_final_ba": tid in j.tie_pids, "note": s.reason if s else "not usable for the Sim(3)"}
+               "in_final_ba": tid in j.tie_pids, "note": note}
         if tid in j.tie_pids:
             p = rec.points3D[j.tie_pids[tid]]
             row["reproj_px"] = {rec.images[e.image_id].name: float(np.linalg.norm(
