@@ -51,9 +51,11 @@ def test_register_without_tiepoints_places_every_sequence(no_clicks, tmp_path):
     # ~0.2 m median. The reference block differs run to run in its last digits (1e-9 m: the database
     # is identical, the mapping is not) and the register's discrete steps carry that into its result:
     # over 11 fresh SfMs of this sample (2026-12-05) medians 0.09-0.23 m and 0.06-0.14 deg (CI once
-    # 0.175 deg), worst photos 0.35-0.77 m and 0.16-0.30 deg. The bounds sit above that spread.
-    assert np.median(pos) < 0.30 and pos.max() < 1.0, pos
-    assert np.median(rot) < 0.25 and rot.max() < 0.5, rot
+    # 0.175 deg), worst photos 0.35-0.77 m and 0.16-0.30 deg; with the seeded mapper's 10 + 30 BA
+    # iterations (c154fcc), over 12 fresh SfMs + CI: medians 0.10-0.29 m and 0.05-0.14 deg, worst
+    # photos 0.36-1.29 m and 0.15-0.47 deg. The bounds sit above that spread.
+    assert np.median(pos) < 0.40 and pos.max() < 2.0, pos
+    assert np.median(rot) < 0.25 and rot.max() < 0.75, rot
     rep = gt_report.run(Project.load(root))
     assert rep["sequences_needing_clicks"] == {} and rep["median_pos_err_m"] == pytest.approx(np.median(pos))
 
