@@ -1251,7 +1251,8 @@ def run(project: Project | str | Path, settings: RegisterSettings | None = None,
             continue
         seq, s = status_by_id.get(tid, (None, None))
         note = s.reason if s else "not usable for the Sim(3)"
-        if seq is None:   # its sequence was placed by the automatic matches: its clicks still count in the BA
+        if seq is None:   # no Sim(3) status (its sequence placed by automatic matches, or its photo left out
+            # of its sequence's SfM): named by its query clicks, which still count in the joint BA
             seq = next((n.split("/")[1] for n in clicks[tid] if n.startswith(prefixes)), None)
             if seq is not None and seq_report[seq].get("registered_by") == "automatic matches":
                 note = "its sequence was placed by the automatic matches (its clicks not used for the Sim(3))"
