@@ -40,7 +40,7 @@ from benchmarks.bench_pseudo_gt import bench as make_site  # noqa: E402
 from gtkit.evaluate.gt_report import CHI2_3_2SIGMA  # noqa: E402
 from gtkit.io.poses import read_covariances, read_poses  # noqa: E402
 from gtkit.pose import Pose  # noqa: E402
-from gtkit.io.tiepoints import read_tiepoints, write_tiepoints  # noqa: E402
+from gtkit.io.tiepoints import Observation, TiePoint, read_tiepoints, write_tiepoints  # noqa: E402
 from gtkit.project import Project  # noqa: E402
 from gtkit.settings import resolve  # noqa: E402
 from gtkit.sfm import guided_clicks as gc  # noqa: E402
@@ -113,13 +113,37 @@ def candidates(ties, poses: dict, cams: dict) -> list[gc.Candidate]:
     return out
 
 
-def bench_seed(root: Path, ks: list, auto: bool, work: Path) -> dict:
+def rescaled_clicks(root: Path, ties: list, scale: float) -> list:
+    """The sample's tie points with every correct click moved to ``scale`` x its offset from the true
+    pixel (``truth/tiepoints_truth.json``; the grossly wrong clicks are kept as they are): the clicks a
+    person would make in photos of 1/``scale`` the sample's pixel size (same points, same order)."""
+    if scale == 1.0:
+        return ties
+    truth = {t["id"]: t for t in json.loads((root / "truth" / "tiepoints_truth.json").read_text())["tiepoints"]}
+    out = []
+    for tp in ties:
+        t = truth.get(tp.id, {})
+        obs = []
+        for o in tp.observations:
+            xy = t.get("true_pixels", {}).get(o.image)
+            wrong = t.get("gross_mistake") and o.image == t.get("wrong_image")
+            obs.append(o if xy is None or wrong else
+                       Observation(o.image, xy[0] + scale * (o.x - xy[0]), xy[1] + scale * (o.y - xy[1])))
+        out.append(TiePoint(tp.id, obs, tp.source, tp.note))
+    return out
+
+
+def tag_of(auto: bool, scale: float) -> str:
+    return ("auto" if auto else "clicks") + ("" if scale == 1.0 else f"_x{scale:g}")
+
+
+def bench_seed(root: Path, ks: list, auto: bool, work: Path, scale: float = 1.0) -> dict:
     truth = read_poses(root / "truth" / "poses.txt")
     ref_rec = pycolmap.Reconstruction(root / "work" / "sfm_reference" / "model")
     refs = gc.reference_views(ref_rec)
     ref_poses = {n: p for n, (p, _) in refs.items()}
     ref_cams = {n: c for n, (_, c) in refs.items()}
-    ties = read_tiepoints(root / "tiepoints.json")
+    ties = rescaled_clicks(root, read_tiepoints(root / "tiepoints.json"), scale)
     seqs = sorted(p.name for p in (root / "work" / "sfm_queries").iterdir() if (p / "model").is_dir())
     avail: dict[str, list] = {}
     for q in seqs:
@@ -129,8 +153,8 @@ def bench_seed(root: Path, ks: list, auto: bool, work: Path) -> dict:
                     and sum(o.image.startswith("queries/") for o in tp.observations) == 1]
     n_all = {q: len(v) for q, v in avail.items()}
     grid = sorted({min(k if k != "all" else 10 ** 9, n) for n in n_all.values() for k in ks})
-    tag = "auto" if auto else "clicks"
-    res = {"sample": {}, "guided": {}, "photos": {}, "n_available": n_all, "seconds": {}}
+    tag = tag_of(auto, scale)
+    res = {"click_scale": scale, "sample": {}, "guided": {}, "photos": {}, "n_available": n_all, "seconds": {}}
     t0 = time.time()
     copy = work / f"g{root.name}_{tag}_sample"
     for k in grid:
@@ -255,13 +279,16 @@ if __name__ == "__main__":
     ap.add_argument("--auto", action="store_true", help="keep the automatic tie points on (default: clicks alone)")
     ap.add_argument("--targets", type=float, nargs="+", default=[0.05, 0.10, 0.20])
     ap.add_argument("--rel", type=float, default=1.25, help="also: clicks to within this factor of the all-clicks error")
+    ap.add_argument("--click-scale", type=float, default=1.0,
+                    help="clicks moved to this x their offset from the truth (e.g. 0.25: as precise as a 1-px "
+                         "click in photos of 4x the sample's width; gross mistakes kept)")
     ap.add_argument("--fresh", action="store_true", help="remove this bench's working copies first")
     ap.add_argument("--report-only", action="store_true", help="print the tables from the saved WORK/guided_*.json")
     a = ap.parse_args()
     ks = [k if k == "all" else int(k) for k in a.ks]
     out = {}
     for seed in a.seeds if a.report_only else []:
-        f = a.work / f"guided_s{seed}_{'auto' if a.auto else 'clicks'}.json"
+        f = a.work / f"guided_s{seed}_{tag_of(a.auto, a.click_scale)}.json"
         if f.is_file():
             r = json.loads(f.read_text())
             out[f"s{seed}"] = {**r, **{o: {int(k): v for k, v in r.get(o, {}).items()} for o in ("sample", "guided", "photos")}}
@@ -270,6 +297,6 @@ if __name__ == "__main__":
         if a.fresh:
             for p in a.work.glob(f"g{root.name}_*"):
                 shutil.rmtree(p)
-        out[root.name] = bench_seed(root, ks, a.auto, a.work)
-        (a.work / f"guided_{root.name}_{'auto' if a.auto else 'clicks'}.json").write_text(json.dumps(out[root.name], indent=1))
+        out[root.name] = bench_seed(root, ks, a.auto, a.work, a.click_scale)
+        (a.work / f"guided_{root.name}_{tag_of(a.auto, a.click_scale)}.json").write_text(json.dumps(out[root.name], indent=1))
     report(out, a.targets, a.rel)

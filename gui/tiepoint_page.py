@@ -499,7 +499,9 @@ class TiePointPage(QWidget):
 def read_guidance(paths) -> list[dict]:
     """The guided clicks of ``work/register/guided_clicks.json`` in the order to click them: the
     sequences farthest above their target first, each sequence's suggestions in its order, each
-    with its ``sequence`` and the sigma before it (``sigma_before_m``). Empty without the file."""
+    with its ``sequence`` and the sigma before it (``sigma_before_m``); sequences whose clicks would
+    barely lower their sigma (``clicks_help`` false: held by their automatic ties) are left out.
+    Empty without the file."""
     f = paths.stage("register") / GUIDANCE_FILE
     if not f.is_file():
         return []
@@ -510,6 +512,8 @@ def read_guidance(paths) -> list[dict]:
         return []
     out = []
     for q, g in sorted(seqs.items(), key=lambda kv: -(kv[1].get("sigma_m") or 0.0) + (kv[1].get("target_m") or 0.0)):
+        if not g.get("clicks_help", True):
+            continue
         before = g.get("sigma_m")
         for s in g.get("suggestions", []):
             if "x" not in s:     # an unregistered sequence: photos to start in, no point yet

@@ -18,7 +18,9 @@ A sequence's sigma is the RMS over its photos of the position sigma ``sqrt(trace
 camera centre, the BA's part plus the per-photo systematic part the register stage adds (which
 clicks do not reduce). :func:`greedy` takes the candidate with the largest drop of the summed
 ``trace C``, updates the covariance, and repeats: the suggested clicks in order, each with the
-sigma expected after it. The library writes what it finds (``work/register/guided_clicks.json``,
+sigma expected after it. Where every suggestion together would lower a sequence's sigma by less than
+``min_useful_drop`` (a sequence held by its automatic ties), it is said so and the annotator is sent
+elsewhere (``clicks_help``). The library writes what it finds (``work/register/guided_clicks.json``,
 the GT report); the annotator (``gui/``) only shows it.
 """
 from __future__ import annotations
@@ -43,6 +45,10 @@ class GuidanceSettings:
     grid: list = field(default_factory=lambda: [4, 3])   # candidate cells per query photo (columns, rows)
     reference_views: int = 2     # reference photos a suggested point is to be clicked in
     click_sigma_px: float = 1.0  # assumed click noise, in the BA's units (1 px per observation)
+    # a sequence whose suggested clicks, all of them, would lower its sigma by less than this share is
+    # said to be held by its automatic ties beyond what clicks can add (small seeds 33-40: every one of
+    # a sequence's 63-100 clicks lowered its sigma by 0.1-3.3 % with the automatic ties on)
+    min_useful_drop: float = 0.05
 
 
 @dataclass
@@ -283,32 +289,43 @@ def grid_candidates(state: SequenceState, rec, refs: dict[str, tuple[Pose, Camer
     return out
 
 
+def sequence_guidance(st: SequenceState, candidates: list[Candidate], refs: dict[str, tuple[Pose, Camera]],
+                      settings: GuidanceSettings) -> dict:
+    """One registered sequence's record of :func:`guidance`: its sigma now, the ``candidates`` in the
+    order to click them (up to the target or ``max_clicks``) with the sigma after each, how many reach
+    the target, and whether clicks help at all (``clicks_help``: false where every suggestion together
+    would lower the sigma by less than ``min_useful_drop``, the sequence held by its automatic ties)."""
+    order = greedy(st, candidates, refs, settings.max_clicks, settings.target_m, settings.click_sigma_px)
+    bw = [c.width / settings.grid[0] / 2 for c in st.cams]
+    bh = [c.height / settings.grid[1] / 2 for c in st.cams]
+    sug = []
+    for c, s in order:
+        k = st.names.index(c.photo)
+        sug.append({"photo": c.photo, "x": c.xy[0], "y": c.xy[1],
+                    "box": [max(0.0, c.xy[0] - bw[k]), max(0.0, c.xy[1] - bh[k]),
+                            min(float(st.cams[k].width), c.xy[0] + bw[k]), min(float(st.cams[k].height), c.xy[1] + bh[k])],
+                    "reference": [{"photo": n, "x": xy[0], "y": xy[1]} for n, xy in c.reference],
+                    "ground_xyz": [float(v) for v in c.xyz], "sigma_after_m": s})
+    now = st.sigma()
+    reach = next((i + 1 for i, (_, s) in enumerate(order) if s <= settings.target_m), None)
+    end = sug[-1]["sigma_after_m"] if sug else now
+    return {"registered": True, "sigma_m": now, "floor_m": float(np.sqrt(np.mean(st.floor))),
+            "target_m": settings.target_m, "at_target": now <= settings.target_m,
+            "clicks_to_target": 0 if now <= settings.target_m else reach,
+            "sigma_after_suggestions_m": end,
+            "clicks_help": bool(now <= settings.target_m or reach is not None
+                                or end < (1 - settings.min_useful_drop) * now),
+            "suggestions": sug}
+
+
 def guidance(states: dict[str, SequenceState], rec, refs: dict[str, tuple[Pose, Camera]],
              settings: GuidanceSettings, unregistered: dict[str, list[str]] | None = None) -> dict:
     """The JSON the annotator reads: per sequence its sigma now, the clicks suggested in order (photo,
     pixel, the box to click in, the reference photos and pixels, the sigma expected after each), how
     many reach ``target_m`` (None where the suggestions do not) and the systematic floor clicks cannot
     lower. ``unregistered``: sequence -> its photos, where no covariance exists yet."""
-    seqs = {}
-    for q, st in sorted(states.items()):
-        order = greedy(st, grid_candidates(st, rec, refs, settings), refs, settings.max_clicks,
-                       settings.target_m, settings.click_sigma_px)
-        bw = [c.width / settings.grid[0] / 2 for c in st.cams]
-        bh = [c.height / settings.grid[1] / 2 for c in st.cams]
-        sug = []
-        for c, s in order:
-            k = st.names.index(c.photo)
-            sug.append({"photo": c.photo, "x": c.xy[0], "y": c.xy[1],
-                        "box": [max(0.0, c.xy[0] - bw[k]), max(0.0, c.xy[1] - bh[k]),
-                                min(float(st.cams[k].width), c.xy[0] + bw[k]), min(float(st.cams[k].height), c.xy[1] + bh[k])],
-                        "reference": [{"photo": n, "x": xy[0], "y": xy[1]} for n, xy in c.reference],
-                        "ground_xyz": [float(v) for v in c.xyz], "sigma_after_m": s})
-        now = st.sigma()
-        reach = next((i + 1 for i, (_, s) in enumerate(order) if s <= settings.target_m), None)
-        seqs[q] = {"registered": True, "sigma_m": now, "floor_m": float(np.sqrt(np.mean(st.floor))),
-                   "target_m": settings.target_m, "at_target": now <= settings.target_m,
-                   "clicks_to_target": 0 if now <= settings.target_m else reach,
-                   "sigma_after_suggestions_m": sug[-1]["sigma_after_m"] if sug else now, "suggestions": sug}
+    seqs = {q: sequence_guidance(st, grid_candidates(st, rec, refs, settings), refs, settings)
+            for q, st in sorted(states.items())}
     for q, photos in sorted((unregistered or {}).items()):
         if q in seqs or not photos:
             continue
@@ -330,6 +347,10 @@ def summary_line(q: str, g: dict) -> str:
     if g["at_target"]:
         return f"{q}: sigma {g['sigma_m']:.3f} m, at the {g['target_m']:.2f} m target: no more clicks needed"
     n = g["clicks_to_target"] if g["clicks_to_target"] is not None else len(g["suggestions"])
+    if n and not g.get("clicks_help", True):
+        return (f"{q}: sigma {g['sigma_m']:.3f} m, above the {g['target_m']:.2f} m target, and clicks barely lower it "
+                f"({n} suggested: to {g['sigma_after_suggestions_m']:.3f} m): its automatic tie points hold it far "
+                "more than clicks can, so clicking will not bring it to the target")
     photos = list(dict.fromkeys(_stem(s["photo"]) for s in g["suggestions"][:n]))
     where = ", ".join(photos[:6]) + (" ..." if len(photos) > 6 else "")
     if not n:
