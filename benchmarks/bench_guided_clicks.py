@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_guided_clicks.py --seeds 13 14 15 --work /tmp/h35
     .venv/bin/python benchmarks/bench_guided_clicks.py --seeds 13 --work W --ks 3 6 12 all --auto
+    .venv/bin/python benchmarks/bench_guided_clicks.py --seeds 33 34 --work W --ks 4 8 12 18 27 40 60 all --click-scale 0.25
 
 For each seed the small sample ``WORK/s<seed>`` is made once (``benchmarks/bench_pseudo_gt.py``'s
 ``bench``: sample, both SfM blocks, registration, report) and reused. A click here is one tie point
@@ -15,6 +16,9 @@ k clicks a sequence:
   no covariance exists before a registration), then, from each registration's covariance, the
   clicks the guidance takes next among the sample's unused ones (:func:`...greedy`, the covariance
   updated after each pick) up to the next k.
+``--click-scale F`` moves every correct click to F x its offset from the true pixel (gross mistakes
+kept): the sample's 1-px clicks in its 1,024-px photos carry too little for 0.05 m by clicks alone in
+any order (``benchmarks/click_information.py``); 0.25 is a 1-px click in a 4,096-px photo.
 Each sequence's error is the median position error of its photos against ``truth/``. "clicks to
 X" is the smallest k from which every larger k of the grid stays within X. Prints one table per
 seed and a summary with the medians over sequences; ROW lines are for scripts.
