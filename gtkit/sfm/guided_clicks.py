@@ -348,9 +348,10 @@ def summary_line(q: str, g: dict) -> str:
         return f"{q}: sigma {g['sigma_m']:.3f} m, at the {g['target_m']:.2f} m target: no more clicks needed"
     n = g["clicks_to_target"] if g["clicks_to_target"] is not None else len(g["suggestions"])
     if n and not g.get("clicks_help", True):
+        floor = f"; systematic floor {g['floor_m']:.3f} m" if g.get("floor_m") else ""
         return (f"{q}: sigma {g['sigma_m']:.3f} m, above the {g['target_m']:.2f} m target, and clicks barely lower it "
-                f"({n} suggested: to {g['sigma_after_suggestions_m']:.3f} m): its automatic tie points hold it far "
-                "more than clicks can, so clicking will not bring it to the target")
+                f"({n} suggested: to {g['sigma_after_suggestions_m']:.3f} m{floor}): its automatic tie points hold it "
+                "far more than clicks can, so clicking will not bring it to the target")
     photos = list(dict.fromkeys(_stem(s["photo"]) for s in g["suggestions"][:n]))
     where = ", ".join(photos[:6]) + (" ..." if len(photos) > 6 else "")
     if not n:
