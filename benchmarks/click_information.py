@@ -39,28 +39,23 @@ from gtkit.sfm import guided_clicks as gc  # noqa: E402
 from gtkit.sfm.geometry import triangulate_clicks  # noqa: E402
 
 
+def zoom_pose(pose_w: Pose, R_zw, offset) -> Pose:
+    """The zoom twin's pose from the wide photo's and the rig (``x_zoom = R_zw (x_wide - offset)``)."""
+    return Pose(R_zw @ pose_w.R, R_zw @ (pose_w.t - offset))
+
+
 def zoom_information(pose_w: Pose, R_zw, offset, camz: Camera, xyz, refs) -> np.ndarray:
-    """``click_information`` of a click in the zoom twin of a wide photo, on the wide photo's pose
-    (zoom pose = rig o wide pose, ``x_zoom = R_zw (x_wide - offset)``)."""
-    Rz = R_zw @ pose_w.R
-    Xc = Rz @ xyz + R_zw @ (pose_w.t - offset)
-    P = gc._pixel_jacobian(camz, Xc)
-    J = P @ R_zw @ pose_w.point_jacobian(xyz)
-    B = P @ Rz
-    M = B.T @ B
-    for rp, rc in refs:
-        A = gc._pixel_jacobian(rc, rp.R @ xyz + rp.t) @ rp.R
-        M = M + A.T @ A
-    W = np.eye(2) - B @ np.linalg.pinv(M) @ B.T
-    w, V = np.linalg.eigh((W + W.T) / 2)
-    return J.T @ (V * np.sqrt(np.clip(w, 0, None)))
+    """``click_information`` of a click in the zoom twin of a wide photo, on the wide photo's pose: a
+    perturbation (dr, dt) of the wide pose is (R_zw dr, R_zw dt) of the zoom pose."""
+    pose_z = zoom_pose(pose_w, R_zw, offset)
+    A = np.block([[R_zw, np.zeros((3, 3))], [np.zeros((3, 3)), R_zw]])
+    return A.T @ gc.click_information(pose_z, camz, np.asarray(xyz, float), refs)
 
 
 def after(st: gc.SequenceState, infos) -> float:
-    cov = st.cov.copy()
+    cov = st.cov
     for k, L in infos:
-        U, Si = gc._update(cov, k, L)
-        cov = cov - U @ Si @ U.T
+        cov = gc.with_click(cov, k, L)
     return st.sigma(cov)
 
 
@@ -107,8 +102,8 @@ def seed_rows(work: Path, seed: int, scale: float) -> list[dict]:
                 continue
             k = st.names.index(w)
             pw = st.poses[k]
-            pz = Pose(R_zw @ pw.R, R_zw @ (pw.t - offset))
-            tri = triangulate_clicks([cams[o.image] for o in rr] + [camz], [poses[o.image] for o in rr] + [pz],
+            tri = triangulate_clicks([cams[o.image] for o in rr] + [camz],
+                                     [poses[o.image] for o in rr] + [zoom_pose(pw, R_zw, offset)],
                                      np.array([[o.x, o.y] for o in rr] + [[zq[0].x, zq[0].y]]), max_px=4.0)
             if tri.xyz is not None:
                 zoom.append((k, zoom_information(pw, R_zw, offset, camz, tri.xyz, [refs[o.image] for o in rr])))

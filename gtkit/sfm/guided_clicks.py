@@ -128,6 +128,12 @@ def _update(cov: np.ndarray, k: int, L: np.ndarray) -> tuple[np.ndarray, np.ndar
     return U, np.linalg.inv(S)
 
 
+def with_click(cov: np.ndarray, k: int, L: np.ndarray) -> np.ndarray:
+    """The covariance after one click (photo index ``k``, information ``L``)."""
+    U, Si = _update(cov, k, L)
+    return cov - U @ Si @ U.T
+
+
 def trace_drop(state: SequenceState, k: int, L: np.ndarray, Jc: np.ndarray | None = None) -> float:
     """How much one click (photo index ``k``, information ``L``) lowers the summed centre variance."""
     Jc = state.centre_jacobians() if Jc is None else Jc
@@ -163,8 +169,7 @@ def greedy(state: SequenceState, candidates: list[Candidate], ref_poses: dict[st
         if drops[b] <= 0:
             break
         c, (k, L) = info.pop(b)
-        U, Si = _update(st.cov, k, L)
-        st.cov = st.cov - U @ Si @ U.T
+        st.cov = with_click(st.cov, k, L)
         out.append((c, st.sigma()))
     return out
 
