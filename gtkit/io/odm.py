@@ -133,3 +133,21 @@ def read_geo_txt(path: str | Path, frame: GeoFrame) -> dict[str, GeoEntry]:
         acc = (vals[6], vals[7]) if len(vals) >= 8 else None
         out[f[0]] = GeoEntry(f[0], local, acc)
     return out
+
+
+def write_gcp_list(path: str | Path, frame: GeoFrame, gcps: list[GCP]) -> Path:
+    """``gcps`` (coordinates in ``frame``'s local world frame, clicks in full-resolution pixels of
+    gtkit's convention) as an ODM ``gcp_list.txt`` in ``frame``'s CRS, atomically: one line per click,
+    ``geo_x geo_y geo_z px py image name`` and ``check`` after the name of a check point (as
+    :func:`read_gcp_list` reads it back). A GCP without clicks has no line (ODM has no place for it)."""
+    from .atomic import write_text
+
+    lines = [frame.crs_spec]
+    for g in gcps:
+        x, y, z = frame.local_to_crs(np.asarray(g.xyz, float))
+        for c in g.clicks:
+            if any(ch.isspace() for ch in c.image) or any(ch.isspace() for ch in g.name):
+                raise GtkitError(f"a photo or GCP name with a space cannot be written to gcp_list.txt: "
+                                 f"{c.image!r} / {g.name!r}", path)
+            lines.append(f"{x:.4f} {y:.4f} {z:.4f} {c.x:.3f} {c.y:.3f} {c.image} {g.name}" + (" check" if g.check else ""))
+    return write_text(path, "\n".join(lines) + "\n")

@@ -1,0 +1,290 @@
+"""Where each GCP is in each photo, from the reference block and whatever has been clicked so far.
+
+:func:`load_block` reads the reference block (``work/sfm_reference``): the georegistered model when
+``gtkit sfm`` placed it (by GPS or by an earlier ``gcp_list.txt``), else the unplaced model it kept
+when nothing could place it (no GPS, no clicks yet). :func:`solve` then, from the GCP coordinates and
+the clicks:
+
+- triangulates every GCP clicked in 2+ photos (the block's own frame; clicks farther than
+  ``max_px`` from the rest are dropped, as georegistration does), with its image residual;
+- fits the block to the world: on a placed block nothing (0 GCPs), a shift (1-2 GCPs) or a Sim(3)
+  (3+ GCPs) correction; on an unplaced block a Sim(3) once 3 GCPs, not on one line, are
+  triangulated. Check points never enter it; they get their X / Y / Z error;
+- predicts every GCP in every photo that sees it (in front, inside the photo, not hidden behind
+  the block's own points there): from its triangulated position where it has one, else from its
+  coordinates through the fit, each with its 1-sigma uncertainty in pixels (the placement's or the
+  fit's accuracy + the GCP's stated accuracy, or the triangulation's from its clicks), ranked by how
+  well the photo shows it (near the photo's centre, near the camera).
+
+Pixels are full-resolution pixels in gtkit's convention (:mod:`gtkit.conventions`).
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import GtkitError
+from ..pose import Pose
+from ..sfm.geometry import triangulate_clicks
+from ..sfm.similarity import Similarity, collinearity, umeyama
+from .points import GCPPoint
+
+CLICK_SIGMA_PX = 1.0     # a careful click on a GCP target (the sample's clicks: 0.5 px)
+FIT_FLOOR_M = 0.03       # a fit's residual scale is never taken below this (block shape + triangulation)
+MARGIN_PX = 4.0          # a prediction this close to the photo's edge is still in the photo
+
+
+@dataclass
+class Block:
+    poses: dict[str, Pose]
+    cams: dict[str, Camera]
+    seen: dict[str, np.ndarray]     # photo -> the block's 3D points it observes (for visibility)
+    placed: bool                    # block frame = the project's world frame
+    sigma_h_m: float | None = None  # the placement's 1-sigma accuracy (placed blocks)
+    sigma_v_m: float | None = None
+    how: str = ""
+
+    @property
+    def photos(self) -> list[str]:
+        return sorted(self.poses)
+
+
+def load_block(paths) -> Block:
+    """The reference block of ``paths`` (see the module doc); a GtkitError naming what to run when
+    there is none."""
+    import pycolmap
+
+    from ..sfm.geometry import model_cameras, model_poses
+
+    d = Path(paths.root) / "work" / "sfm_reference"
+    placed = (d / "model").is_dir() and (d / "poses.txt").is_file()
+    mdir = d / "model" if placed else d / "unplaced_model"
+    if not mdir.is_dir():
+        raise GtkitError("no reference block yet: run `gtkit sfm SITE --block reference` first", d)
+    rec = pycolmap.Reconstruction(str(mdir))
+    poses, cams = model_poses(rec), model_cameras(rec)
+    seen = {}
+    for im in rec.images.values():
+        if im.has_pose:
+            ids = [p.point3D_id for p in im.points2D if p.has_point3D()]
+            seen[im.name] = np.array([rec.points3D[i].xyz for i in ids]).reshape(-1, 3)
+    sh = sv = None
+    how = "not placed in the world (no GPS, no GCP clicks when it was built)"
+    if placed:
+        try:
+            geo = json.loads((d / "block.json").read_text()).get("georegistration", {})
+        except (OSError, json.JSONDecodeError):
+            geo = {}
+        q = geo.get("gps_quality") or {}
+        if q.get("absolute_accuracy_h_m"):
+            sh, sv = float(q["absolute_accuracy_h_m"]), float(q.get("absolute_accuracy_v_m") or q["absolute_accuracy_h_m"])
+        elif geo.get("gcp_rmse_m"):
+            sh = sv = float(geo["gcp_rmse_m"])
+        elif geo.get("rmse_inliers_m"):
+            sh = sv = float(geo["rmse_inliers_m"])
+        how = f"placed by {geo.get('fitted_to', 'georegistration')}"
+    return Block(poses, cams, seen, placed, sh, sv, how)
+
+
+@dataclass
+class Prediction:
+    gcp: str
+    photo: str
+    x: float
+    y: float
+    sigma_px: float
+    depth: float                 # along the optical axis, block units
+    rank_score: float            # lower = shows it better
+    source: str                  # "triangulated" (its own clicks) or "coordinates" (through the fit)
+
+
+@dataclass
+class GCPState:
+    name: str
+    check: bool
+    n_clicks: int
+    clicks_used: int = 0
+    xyz_block: np.ndarray | None = None       # triangulated, block frame
+    residuals_px: dict[str, float] = field(default_factory=dict)  # photo -> reprojection residual
+    residual_px: float | None = None          # RMS of the used clicks' residuals
+    error_m: np.ndarray | None = None         # fitted position - coordinates (X, Y, Z), metres
+    in_fit: bool = False
+    reason: str = ""
+
+    @property
+    def error_3d_m(self) -> float | None:
+        return None if self.error_m is None else float(np.linalg.norm(self.error_m))
+
+
+@dataclass
+class Solution:
+    world_from_block: Similarity | None
+    fit: str                                   # in words
+    states: dict[str, GCPState]
+    predictions: list[Prediction]
+    sigma_fit_m: float | None = None
+
+    def for_gcp(self, name: str) -> list[Prediction]:
+        """The photos that see GCP ``name``, best first."""
+        return sorted((p for p in self.predictions if p.gcp == name), key=lambda p: p.rank_score)
+
+    def at(self, name: str, photo: str) -> Prediction | None:
+        return next((p for p in self.predictions if p.gcp == name and p.photo == photo), None)
+
+    def rmse_m(self, check: bool) -> float | None:
+        e = [s.error_3d_m for s in self.states.values() if s.check == check and s.error_m is not None]
+        return float(np.sqrt(np.mean(np.square(e)))) if e else None
+
+    def rmse_xyz_m(self, check: bool) -> np.ndarray | None:
+        e = [s.error_m for s in self.states.values() if s.check == check and s.error_m is not None]
+        return np.sqrt(np.mean(np.square(e), axis=0)) if e else None
+
+
+def _jacobian(cam: Camera, pose: Pose, X: np.ndarray) -> tuple[np.ndarray, float]:
+    """d(pixel)/d(X) (2x3, pinhole part) at block point X, and its depth."""
+    pc = pose.R @ X + pose.t
+    z = pc[2]
+    J = np.array([[cam.fx / z, 0.0, -cam.fx * pc[0] / z ** 2], [0.0, cam.fy / z, -cam.fy * pc[1] / z ** 2]])
+    return J @ pose.R, float(z)
+
+
+def _occluded(block: Block, photo: str, uv: np.ndarray, depth: float) -> bool:
+    """Whether the block's own points observed around ``uv`` in ``photo`` lie clearly in front of
+    a point at ``depth`` (a roof or a tree between the camera and the GCP)."""
+    P = block.seen.get(photo)
+    if P is None or len(P) < 10:
+        return False
+    pose, cam = block.poses[photo], block.cams[photo]
+    pc = P @ pose.R.T + pose.t
+    front = pc[:, 2] > 1e-9
+    px, _ = cam.project(pc[front])
+    r = max(15.0, 0.03 * cam.width)
+    near = np.linalg.norm(px - uv, axis=1) < r
+    if near.sum() < 3:
+        return False
+    return bool(np.median(pc[front][near, 2]) < 0.93 * depth)
+
+
+def _point_cov_world(p: GCPPoint, sh: float, sv: float) -> np.ndarray:
+    ah = p.acc_h or 0.0
+    av = p.acc_v if p.acc_v is not None else ah
+    return np.diag([sh ** 2 + ah ** 2, sh ** 2 + ah ** 2, sv ** 2 + av ** 2])
+
+
+def _fit(block: Block, used: list[tuple[GCPPoint, np.ndarray]]) -> tuple[Similarity | None, str, float | None, dict]:
+    """world_from_block from the triangulated control GCPs ``used`` ((point, block xyz)); the fit in
+    words; its residual scale (m); the leverage data."""
+    k = len(used)
+    src = np.array([x for _, x in used]).reshape(-1, 3)
+    tgt = np.array([p.xyz for p, _ in used]).reshape(-1, 3)
+    floor = max([FIT_FLOOR_M] + [p.acc_h or 0.0 for p, _ in used])
+    if k >= 3 and collinearity(tgt) >= 1e-3 and collinearity(src) >= 1e-3:
+        sim = umeyama(src, tgt)
+        if sim is not None:
+            r = sim.apply(src) - tgt
+            dof = 3 * k - 7
+            s0 = float(np.sqrt((r ** 2).sum() / dof)) if dof > 0 else 0.0
+            c = tgt.mean(0)
+            return sim, f"Sim(3) to {k} GCPs", max(s0, floor), {"centre": c, "spread": float(((tgt - c) ** 2).sum()), "k": k}
+    if block.placed and k >= 1:
+        t = (tgt - src).mean(0)
+        sim = Similarity(1.0, np.eye(3), t)
+        r = sim.apply(src) - tgt
+        s0 = float(np.sqrt((r ** 2).sum() / (3 * k - 3))) if k > 1 else 0.0
+        return sim, f"block placement shifted to {k} GCP{'s' if k > 1 else ''}", max(s0, floor), {"k": k}
+    if block.placed:
+        return Similarity(1.0, np.eye(3), np.zeros(3)), block.how, None, {"k": 0}
+    return None, (f"{k} GCP{'s' if k != 1 else ''} triangulated: 3 not on one line are needed to place the block"
+                  if k else "the block is not placed: click 3 GCPs in 2+ photos each"), None, {"k": k}
+
+
+def solve(block: Block, points: list[GCPPoint], clicks: dict[str, dict[str, tuple[float, float]]],
+          click_sigma_px: float = CLICK_SIGMA_PX, max_px: float = 4.0) -> Solution:
+    """See the module doc. ``clicks``: {GCP name: {photo: (x, y)}} (photos outside the block are kept
+    but not used)."""
+    states: dict[str, GCPState] = {}
+    used = []
+    for p in points:
+        c = {ph: xy for ph, xy in clicks.get(p.name, {}).items() if ph in block.poses}
+        st = states[p.name] = GCPState(p.name, p.check, len(clicks.get(p.name, {})))
+        if len(c) < 2:
+            st.reason = "clicked in fewer than 2 photos of the block" if c or st.n_clicks else "not clicked"
+            continue
+        names = sorted(c)
+        tri = triangulate_clicks([block.cams[n] for n in names], [block.poses[n] for n in names],
+                                 np.array([c[n] for n in names], float), max_px=max_px)
+        st.residuals_px = {n: float(r) for n, r in zip(names, tri.residuals_px)}
+        st.clicks_used = int(tri.used.sum())
+        if tri.xyz is None:
+            st.reason = tri.reason
+            continue
+        st.xyz_block = tri.xyz
+        st.residual_px = float(np.sqrt(np.mean(tri.residuals_px[tri.used] ** 2)))
+        if not p.check:
+            used.append((p, tri.xyz))
+    sim, how, s0, lev = _fit(block, used)
+    for p, _ in used:
+        states[p.name].in_fit = sim is not None and lev["k"] > 0
+    if sim is not None:
+        for p in points:
+            st = states[p.name]
+            if st.xyz_block is not None:
+                st.error_m = sim.apply(st.xyz_block[None])[0] - p.xyz
+    preds = []
+    for p in points:
+        st = states[p.name]
+        if st.xyz_block is not None:   # its own clicks say where it is, whatever the fit
+            X, src = st.xyz_block, "triangulated"
+            names = [n for n in st.residuals_px if np.isfinite(st.residuals_px[n])]
+            A = sum(_jacobian(block.cams[n], block.poses[n], X)[0].T @ _jacobian(block.cams[n], block.poses[n], X)[0]
+                    for n in names)
+            try:
+                cov_b = click_sigma_px ** 2 * np.linalg.inv(A)
+            except np.linalg.LinAlgError:
+                cov_b = None
+        elif sim is not None:
+            X, src = np.linalg.solve(sim.R * sim.scale, p.xyz - sim.t), "coordinates"
+            if lev["k"] == 0:
+                cov_w = _point_cov_world(p, block.sigma_h_m or 1.0, block.sigma_v_m or block.sigma_h_m or 1.0)
+            else:
+                f = 1.0 + 1.0 / lev["k"]
+                if "spread" in lev:
+                    f += float(((p.xyz - lev["centre"]) ** 2).sum()) / max(lev["spread"], 1e-9)
+                cov_w = _point_cov_world(p, s0 * np.sqrt(f), s0 * np.sqrt(f))
+            Rb = sim.R.T / sim.scale            # world -> block (linear part)
+            cov_b = Rb @ cov_w @ Rb.T
+        else:
+            continue
+        cands = []
+        for n in block.photos:
+            cam, pose = block.cams[n], block.poses[n]
+            pc = pose.R @ X + pose.t
+            if pc[2] <= 1e-9:
+                continue
+            uv, _ = cam.project(pc[None])
+            uv = uv[0]
+            if not cam.in_image(uv, -MARGIN_PX) or _occluded(block, n, uv, pc[2]):
+                continue
+            J, z = _jacobian(cam, pose, X)
+            s = float(np.sqrt(max(np.linalg.eigvalsh(J @ cov_b @ J.T)[-1], 0.0))) if cov_b is not None else float("nan")
+            r_norm = float(np.linalg.norm(uv - [cam.width / 2, cam.height / 2]) / np.hypot(cam.width / 2, cam.height / 2))
+            cands.append([n, uv, s, z, r_norm])
+        if not cands:
+            continue
+        zmin = min(c[3] for c in cands)
+        for n, uv, s, z, r_norm in cands:
+            preds.append(Prediction(p.name, n, float(uv[0]), float(uv[1]), s, z, r_norm + 0.5 * (z / zmin - 1.0), src))
+    return Solution(sim, how, states, preds, s0)
+
+
+def predictions_csv(sol: Solution) -> str:
+    """``gcp,photo,x,y,sigma_px,source`` lines, best photos of each GCP first."""
+    rows = ["gcp,photo,x,y,sigma_px,source"]
+    for name in dict.fromkeys(p.gcp for p in sol.predictions):
+        for p in sol.for_gcp(name):
+            rows.append(f"{p.gcp},{p.photo},{p.x:.2f},{p.y:.2f},{p.sigma_px:.2f},{p.source}")
+    return "\n".join(rows) + "\n"
