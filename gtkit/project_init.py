@@ -1,9 +1,11 @@
 """``gtkit init``: a project folder made from a user's own files.
 
 Photos are linked (or copied) into the layout gtkit expects (``images/reference/``,
-``images/queries/<seq>/``); ``gcp_list.txt``, ``geo.txt`` and ``cameras.txt`` are copied in.
-The CRS is the one given, else the CRS line of the GCP / geo file, else the UTM zone of the photos'
-GPS; the local origin is the data's centroid (rounded to 1 m, height 0). Returns what was found
+``images/queries/<seq>/``); ``gcp_list.txt``, ``geo.txt`` and ``cameras.txt`` are copied in; a
+surveyor's GCP coordinates file (``--gcp-points``, see :mod:`gtkit.gcp.points`) is checked and stored
+as ``gcp/points.txt`` (clicked later in the annotator's GCP page).
+The CRS is the one given, else the CRS line of the GCP / GCP coordinates / geo file, else the UTM
+zone of the photos' GPS; the local origin is the data's centroid (rounded to 1 m, height 0). Returns what was found
 and what is missing, for the command to print; nothing is written when the input cannot make a
 project (one clear error naming the file and the reason).
 """
@@ -16,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import GtkitError
+from .gcp.points import check_inside, points_path, read_points, write_points
 from .geo import GeoFrame, parse_crs, utm_epsg
 from .io.exif import read_photo_meta
 from .io.odm import read_crs, read_gcp_list, read_geo_txt
@@ -56,6 +59,23 @@ def _scan(photos: list[Path]) -> tuple[dict, list]:
              "exif_focal": sum(bool(m.focal_mm or m.focal_35mm) for m in metas), "sizes": sizes}, metas)
 
 
+def _points_crs(path) -> str | None:
+    """The CRS a GCP coordinates file names on its first line (None: it names none)."""
+    from .gcp.points import _is_crs_line
+    from .io.odm import parse_odm_crs
+
+    for n, ln in enumerate(Path(path).read_text(encoding="utf-8-sig").splitlines(), 1):
+        s = ln.split("#", 1)[0].strip()
+        if s:
+            if not _is_crs_line(s):
+                return None
+            try:
+                return parse_odm_crs(s, path)
+            except GtkitError:
+                raise GtkitError(f"line {n}: unknown CRS {s!r}", path) from None
+    return None
+
+
 def _place(src: Path, dst: Path, copy: bool) -> None:
     dst.parent.mkdir(parents=True, exist_ok=True)
     if dst.exists() or dst.is_symlink():
@@ -68,7 +88,7 @@ def _place(src: Path, dst: Path, copy: bool) -> None:
 
 def init_project(root: str | Path, reference: str | Path, queries: list[str | Path] = (), crs: str | None = None,
                  gcp: str | Path | None = None, geo: str | Path | None = None, cameras: str | Path | None = None,
-                 copy: bool = False, name: str | None = None) -> InitReport:
+                 copy: bool = False, name: str | None = None, gcp_points: str | Path | None = None) -> InitReport:
     root = Path(root)
     if (root / PROJECT_FILE).exists():
         raise GtkitError("already a gtkit project (project.toml exists); use another folder", root)
@@ -76,7 +96,7 @@ def init_project(root: str | Path, reference: str | Path, queries: list[str | Pa
     seqs = {Path(q).name: _photos(Path(q)) for q in queries}
     if len(seqs) != len(queries):
         raise GtkitError("two query folders have the same name; each sequence needs its own folder name")
-    for f in (gcp, geo, cameras):
+    for f in (gcp, geo, cameras, gcp_points):
         if f is not None and not Path(f).is_file():
             raise GtkitError("file not found", f)
     rep = InitReport(root)
@@ -96,6 +116,8 @@ def init_project(root: str | Path, reference: str | Path, queries: list[str | Pa
         spec, rep.crs_from = crs, "--crs"
     elif gcp is not None:
         spec, rep.crs_from = read_crs(gcp), f"{Path(gcp).name} (first line)"
+    elif gcp_points is not None and _points_crs(gcp_points):
+        spec, rep.crs_from = _points_crs(gcp_points), f"{Path(gcp_points).name} (first line)"
     elif geo is not None:
         spec, rep.crs_from = read_crs(geo), f"{Path(geo).name} (first line)"
     elif gps:
@@ -118,6 +140,8 @@ def init_project(root: str | Path, reference: str | Path, queries: list[str | Pa
         pts += [g.xyz for g in read_gcp_list(gcp, zero)]
     if geo is not None:
         pts += [e.xyz for e in read_geo_txt(geo, zero).values()]
+    if gcp_points is not None:
+        pts += [p.xyz for p in read_points(gcp_points, zero)[0]]
     if not pts and gps:
         pts = list(zero.wgs84_to_local(*np.array(gps).T, np.zeros(len(gps))))
     cen = np.nanmedian(np.array(pts), axis=0) if pts else np.zeros(3)
@@ -141,6 +165,16 @@ def init_project(root: str | Path, reference: str | Path, queries: list[str | Pa
         if rep.gcps["heights_all_equal"]:
             rep.notes.append("every GCP has the same height (heights not surveyed?): the fit accepts it and reports "
                              "the residuals; set [sfm.georegister] gcp_accuracy_m if you know their accuracy")
+    points = None
+    if gcp_points is not None:
+        points, pspec = read_points(gcp_points, frame)
+        if gps:
+            ll = np.array(gps)
+            C = frame.wgs84_to_local(ll[:, 0], ll[:, 1], np.zeros(len(ll)))
+            check_inside(points, np.array([C[:, :2].min(0), C[:, :2].max(0)]), gcp_points, 200.0,
+                         "the photos' GPS footprint")
+        rep.gcps.update({"points": len(points), "points_crs": pspec,
+                         "points_check": sorted(p.name for p in points if p.check)})
     if geo is not None:
         entries = read_geo_txt(geo, frame)
         all_names = ref_names | {p.name for ph in seqs.values() for p in ph}
@@ -161,8 +195,9 @@ def init_project(root: str | Path, reference: str | Path, queries: list[str | Pa
     if r["exif_focal"] < r["photos"] and cameras is None:
         rep.missing.append(f"{r['photos'] - r['exif_focal']} reference photos have no EXIF focal length and there is no "
                            "cameras.txt: the focal length is self-calibrated")
-    if gcp is None:
-        rep.missing.append("no gcp_list.txt: georegistration by GPS only (or give --gcp)")
+    if gcp is None and gcp_points is None:
+        rep.missing.append("no gcp_list.txt: georegistration by GPS only (or give --gcp, or --gcp-points to click "
+                           "them in the annotator)")
     if not seqs:
         rep.missing.append("no query sequences (add folders with --queries, one per sequence)")
     extra = {}
@@ -182,6 +217,8 @@ def init_project(root: str | Path, reference: str | Path, queries: list[str | Pa
     for src, dst in ((gcp, P.gcp_list), (geo, P.geo_txt), (cameras, P.cameras)):
         if src is not None:
             shutil.copy2(src, dst)
+    if points is not None:
+        write_points(points_path(P), points, frame)
     imports = {"imports": {"photos": {"reference": str(Path(reference).resolve()),
                                       "queries": [str(Path(q).resolve()) for q in queries],
                                       "mode": "copied" if copy else "linked"}}}

@@ -17,6 +17,8 @@ def register(sub):
     p.add_argument("--queries", nargs="*", default=[], metavar="SEQ_DIR", help="query sequence folders")
     p.add_argument("--crs", default=None, help="project CRS: EPSG:<code>, WKT or PROJ (projected, metres)")
     p.add_argument("--gcp", default=None, metavar="FILE", help="OpenDroneMap gcp_list.txt")
+    p.add_argument("--gcp-points", default=None, metavar="FILE",
+                   help="GCP coordinates to click in the annotator: [CRS line] then name x y z [acc_h [acc_v]] [check]")
     p.add_argument("--geo", default=None, metavar="FILE", help="OpenDroneMap geo.txt (photo positions)")
     p.add_argument("--cameras", default=None, metavar="FILE", help="cameras.txt (fixed calibrations)")
     p.add_argument("--copy", action="store_true", help="copy the photos instead of linking them")
@@ -28,7 +30,7 @@ def run(args):
     from ..project_init import init_project
 
     r = init_project(args.project, args.reference, args.queries, args.crs, args.gcp, args.geo, args.cameras,
-                     args.copy, args.name)
+                     args.copy, args.name, args.gcp_points)
     ref = r.reference
     print(f"project {r.root}: CRS {r.crs} (from {r.crs_from}), origin {r.origin[0]:.0f} {r.origin[1]:.0f}")
     print(f"reference photos: {ref['photos']} ({', '.join(ref['sizes'])}); GPS {ref['gps']}, DJI XMP {ref['dji_xmp']}, "
@@ -36,10 +38,14 @@ def run(args):
     for s, q in r.queries.items():
         print(f"query sequence {s}: {q['photos']} photos ({q['wide']} wide *_W, {q['zoom']} zoom *_Z); GPS {q['gps']}, "
               f"DJI XMP {q['dji_xmp']}")
-    if r.gcps:
+    if r.gcps.get("n") is not None:
         g = r.gcps
         print(f"GCPs: {g['n']} with {g['clicks']} clicks; check points: {', '.join(g['check_points']) or 'none'}"
               + (f"; fewer than 2 clicks: {', '.join(g['with_fewer_than_2_clicks'])}" if g['with_fewer_than_2_clicks'] else ""))
+    if r.gcps.get("points"):
+        g = r.gcps
+        print(f"GCP coordinates: {g['points']} (CRS {g['points_crs']}; check points: {', '.join(g['points_check']) or 'none'})"
+              " -> gcp/points.txt; click them in the annotator's GCPs tab after `gtkit sfm --block reference`")
     if r.geo:
         print(f"geo.txt: {r.geo['n']} positions, {r.geo['matching_photos']} match a photo, "
               f"{r.geo['with_accuracy']} with accuracy columns")
