@@ -1,5 +1,5 @@
-"""The annotator's main window: the tie-point workspace, the alignment review and the target
-clicks (for ``gtkit track``) as three tabs,
+"""The annotator's main window: the tie-point workspace, the alignment review, the target
+clicks (for ``gtkit track``), the 3D scene and the GCP clicks (``gcp_list.txt``) as tabs,
 the shortcuts for every frequent action, and the session file that makes reopening resume."""
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from gtkit.io.poses import read_poses
 from gtkit.project import Project, resolve_path
 from gtkit.render.overlay import default_pose_file
 
+from .gcp_page import GcpPage
 from .images import ImageCache
 from .ranking import OverlapRanker
 from .review_page import ReviewPage
@@ -39,8 +40,10 @@ SHORTCUTS = [  # (menu, label, keys, method)
     ("Review", "Next image", "K", "next_image"), ("Review", "Previous image", "J", "prev_image"),
     ("View", "Tie points tab", "Ctrl+1", "tab_tiepoints"), ("View", "Review tab", "Ctrl+2", "tab_review"),
     ("View", "Targets tab", "Ctrl+3", "tab_targets"), ("View", "3D scene tab", "Ctrl+4", "tab_scene"),
+    ("View", "GCPs tab", "Ctrl+5", "tab_gcps"), ("GCP", "Next GCP", "G", "next_gcp"),
 ]
-TABS = ("tiepoints", "review", "targets", "scene")
+TABS = ("tiepoints", "review", "targets", "scene", "gcps")
+GCP_TAB = 4
 
 
 class MainWindow(QMainWindow):
@@ -70,11 +73,14 @@ class MainWindow(QMainWindow):
         self.tabs.addTab(self.targets, "Targets")
         self.scene3d = ScenePage(self.project)  # built when first shown (gtkit.view.scene, VTK offscreen)
         self.tabs.addTab(self.scene3d, "3D scene")
+        self.gcp_undo = QUndoStack(self)  # the GCP page's own undo history
+        self.gcps = GcpPage(self.project, self.cache, self.gcp_undo)
+        self.tabs.addTab(self.gcps, "GCPs")
         self._prev_tab = 0
         self.setCentralWidget(self.tabs)
         self.setWindowTitle(f"gtkit annotate: {self.project.name} ({P.root})")
         self.resize(1500, 900)
-        for page in (self.tiepoints, self.review, self.targets, self.scene3d):
+        for page in (self.tiepoints, self.review, self.targets, self.scene3d, self.gcps):
             page.status.connect(lambda m: self.statusBar().showMessage(m, 8000))
             page.session_changed.connect(self.schedule_session_save)
         self.tabs.currentChanged.connect(self._tab_changed)
@@ -90,6 +96,7 @@ class MainWindow(QMainWindow):
         self.tiepoints.restore(tp)
         self.review.restore(self.session.get("review", {}))
         self.targets.restore(self.session.get("targets", {}))
+        self.gcps.restore(self.session.get("gcps", {}))
         if self.session.get("tab") in TABS[1:]:
             self.tabs.setCurrentIndex(TABS.index(self.session["tab"]))
         self._restoring = False
@@ -120,25 +127,36 @@ class MainWindow(QMainWindow):
     def _on_targets(self):
         return self.tabs.currentIndex() == 2
 
+    def _on_gcps(self):
+        return self.tabs.currentIndex() == GCP_TAB
+
     def _views(self):
+        if self._on_gcps():
+            return (self.gcps.view,)
         if self._on_tp():
             return (self.tiepoints.qview, self.tiepoints.rview)
         return (self.targets.view,) if self._on_targets() else (self.review.view,)
 
     def undo_(self):
-        if self._on_targets():
+        if self._on_gcps():
+            self.gcps.undo_()
+        elif self._on_targets():
             self.targets.undo_()
         else:
             self.undo_stack.undo()
 
     def redo_(self):
-        if self._on_targets():
+        if self._on_gcps():
+            self.gcps.redo_()
+        elif self._on_targets():
             self.targets.redo_()
         else:
             self.undo_stack.redo()
 
     def delete_(self):
-        if self._on_tp():
+        if self._on_gcps():
+            self.gcps.delete_click()
+        elif self._on_tp():
             self.tiepoints.delete_active()
         elif self._on_targets():
             self.targets.delete_active()
@@ -151,13 +169,17 @@ class MainWindow(QMainWindow):
         self.tiepoints.refresh()
 
     def next_query(self):
-        if self._on_targets():
+        if self._on_gcps():
+            self.gcps.step(1)
+        elif self._on_targets():
             self.targets.step(1)
         else:
             self.tiepoints.step_query(1)
 
     def prev_query(self):
-        if self._on_targets():
+        if self._on_gcps():
+            self.gcps.step(-1)
+        elif self._on_targets():
             self.targets.step(-1)
         else:
             self.tiepoints.step_query(-1)
@@ -173,7 +195,7 @@ class MainWindow(QMainWindow):
             v.fit()
 
     def toggle_loupe(self):
-        for v in (self.tiepoints.qview, self.tiepoints.rview, self.targets.view):
+        for v in (self.tiepoints.qview, self.tiepoints.rview, self.targets.view, self.gcps.view):
             v.loupe_enabled = not v.loupe_enabled
             v.loupe.hide()
 
@@ -239,15 +261,25 @@ class MainWindow(QMainWindow):
     def tab_scene(self):
         self.tabs.setCurrentIndex(3)
 
+    def tab_gcps(self):
+        self.tabs.setCurrentIndex(GCP_TAB)
+
+    def next_gcp(self):
+        if self._on_gcps():
+            self.gcps.next_gcp()
+
     def selected_photo(self, tab: int) -> str | None:
         """The photo the user has open in a tab (tie points: the query; review and targets: the image)."""
-        return {0: self.tiepoints.query, 1: self.review.image, 2: getattr(self.targets, "image", None)}.get(tab)
+        return {0: self.tiepoints.query, 1: self.review.image, 2: getattr(self.targets, "image", None),
+                GCP_TAB: self.gcps.photo}.get(tab)
 
     def _tab_changed(self, i):
         if i == 1 and self.review.image is None:
             self.review.open_image(getattr(self.review, "_restore_image", None))
         if i == 2:
             self.targets.ensure_shown()
+        if i == GCP_TAB:
+            self.gcps.ensure_shown()
         if i == 3:  # the 3D view jumps to the photo selected in the tab the user came from
             photo = self.selected_photo(self._prev_tab)
             self.scene3d.set_photo(photo)
@@ -261,7 +293,7 @@ class MainWindow(QMainWindow):
     def session_state(self) -> dict:
         return {"format": "gtkit-annotate-session", "tab": TABS[self.tabs.currentIndex()],
                 "tiepoints": self.tiepoints.session_state(), "review": self.review.session_state(),
-                "targets": self.targets.session_state()}
+                "targets": self.targets.session_state(), "gcps": self.gcps.session_state()}
 
     def schedule_session_save(self):
         if not self._restoring and not self._save_timer.isActive():
