@@ -7,9 +7,9 @@ the clicks:
 
 - triangulates every GCP clicked in 2+ photos (the block's own frame; clicks farther than
   ``max_px`` from the rest are dropped, as georegistration does), with its image residual;
-- fits the block to the world: on a placed block nothing (0 GCPs), a shift (1-2 GCPs) or a Sim(3)
-  (3+ GCPs) correction; on an unplaced block a Sim(3) once 3 GCPs, not on one line, are
-  triangulated. Check points never enter it; they get their X / Y / Z error;
+- fits the block to the world: a placed block is shifted onto the clicked GCPs (with 4+ GCPs a
+  Sim(3) where it predicts left-out GCPs better); an unplaced block gets a Sim(3) once 3 GCPs, not
+  on one line, are triangulated. Check points never enter it; they get their X / Y / Z error;
 - predicts every GCP in every photo that sees it (in front, inside the photo, not hidden behind
   the block's own points there): from its triangulated position where it has one, else from its
   coordinates through the fit, each with its 1-sigma uncertainty in pixels (the placement's or the
@@ -175,15 +175,44 @@ def _point_cov_world(p: GCPPoint, sh: float, sv: float) -> np.ndarray:
     return np.diag([sh ** 2 + ah ** 2, sh ** 2 + ah ** 2, sv ** 2 + av ** 2])
 
 
+def _sim3(src: np.ndarray, tgt: np.ndarray) -> Similarity | None:
+    if len(src) < 3 or collinearity(tgt) < 1e-3 or collinearity(src) < 1e-3:
+        return None
+    return umeyama(src, tgt)
+
+
+def _shift(src: np.ndarray, tgt: np.ndarray) -> Similarity:
+    return Similarity(1.0, np.eye(3), (tgt - src).mean(0))
+
+
+def _loo_rms(fit, src: np.ndarray, tgt: np.ndarray) -> float:
+    """Leave-one-out error of a fitting rule: each GCP predicted by the fit to the others."""
+    e = []
+    for i in range(len(src)):
+        m = np.arange(len(src)) != i
+        f = fit(src[m], tgt[m])
+        if f is None:
+            return float("inf")
+        e.append(np.sum((f.apply(src[i:i + 1])[0] - tgt[i]) ** 2))
+    return float(np.sqrt(np.mean(e)))
+
+
 def _fit(block: Block, used: list[tuple[GCPPoint, np.ndarray]]) -> tuple[Similarity | None, str, float | None, dict]:
     """world_from_block from the triangulated control GCPs ``used`` ((point, block xyz)); the fit in
-    words; its residual scale (m); the leverage data."""
+    words; its residual scale (m); the leverage data.
+
+    A placed block keeps its rotation and scale (from many GPS positions they are better known than
+    from a few GCPs, measured on the tiny sample: a Sim(3) to 3 GCPs put the 4th 0.58 m off in Z, the
+    shift 0.05 m) and is shifted onto the GCPs, unless with 4+ GCPs a Sim(3) predicts each
+    left-out GCP better than the shift does. An unplaced block gets a Sim(3) once 3 GCPs not on one
+    line are triangulated."""
     k = len(used)
     src = np.array([x for _, x in used]).reshape(-1, 3)
     tgt = np.array([p.xyz for p, _ in used]).reshape(-1, 3)
     floor = max([FIT_FLOOR_M] + [p.acc_h or 0.0 for p, _ in used])
-    if k >= 3 and collinearity(tgt) >= 1e-3 and collinearity(src) >= 1e-3:
-        sim = umeyama(src, tgt)
+    use_sim = not block.placed or (k >= 4 and _loo_rms(_sim3, src, tgt) < _loo_rms(_shift, src, tgt))
+    if use_sim:
+        sim = _sim3(src, tgt)
         if sim is not None:
             r = sim.apply(src) - tgt
             dof = 3 * k - 7
@@ -191,8 +220,7 @@ def _fit(block: Block, used: list[tuple[GCPPoint, np.ndarray]]) -> tuple[Similar
             c = tgt.mean(0)
             return sim, f"Sim(3) to {k} GCPs", max(s0, floor), {"centre": c, "spread": float(((tgt - c) ** 2).sum()), "k": k}
     if block.placed and k >= 1:
-        t = (tgt - src).mean(0)
-        sim = Similarity(1.0, np.eye(3), t)
+        sim = _shift(src, tgt)
         r = sim.apply(src) - tgt
         s0 = float(np.sqrt((r ** 2).sum() / (3 * k - 3))) if k > 1 else 0.0
         return sim, f"block placement shifted to {k} GCP{'s' if k > 1 else ''}", max(s0, floor), {"k": k}
