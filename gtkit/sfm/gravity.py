@@ -8,6 +8,10 @@ Two sources, best first:
   camera held level has its image x axis horizontal (true of nadir and oblique photos alike), so up
   is the direction most nearly perpendicular to every photo's x axis, taken on the downward side.
 
+A third, **the level prior** (``up_from_level_prior``: photos taken level and upright, as of a
+facade from the ground), is used by the georegistration only where the positions or GCPs show a
+level capture, and only for what they cannot hold.
+
 ``block_up(rec, metas)`` returns the unit vector and how it was found, with a spread (degrees) that
 says how well the photos agree. The georegistration holds the block's tilt by it where the GPS
 positions cannot (gtkit.sfm.gps_fit), and checks every fit against it (gtkit.sfm.plausibility).
@@ -25,14 +29,14 @@ from ..conventions import dji_to_rotation
 @dataclass
 class Up:
     vector: np.ndarray     # unit, in the block's frame
-    source: str            # "gimbal" | "aerial prior"
+    source: str            # "gimbal" | "aerial prior" | "level prior"
     n_photos: int
     spread_deg: float      # how far single photos' estimates lie from it (robust), degrees
     sigma_deg: float       # the estimate's own uncertainty, degrees
 
     def record(self) -> dict:
-        return {"source": self.source, "n_photos": self.n_photos, "spread_deg": round(self.spread_deg, 3),
-                "sigma_deg": round(self.sigma_deg, 3)}
+        return {"source": self.source, "n_photos": int(self.n_photos), "spread_deg": round(float(self.spread_deg), 3),
+                "sigma_deg": round(float(self.sigma_deg), 3)}
 
 
 def _axes(rec: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
@@ -103,6 +107,30 @@ def up_from_aerial_prior(rec: pycolmap.Reconstruction, min_eig_ratio: float = 4.
     tilt = np.degrees(np.abs(np.arcsin(np.clip(xs @ u, -1, 1))))
     spread = float(1.4826 * np.median(tilt))
     return Up(u, "aerial prior", len(Rs), spread, spread / np.sqrt(len(Rs)))
+
+
+def up_from_level_prior(rec: pycolmap.Reconstruction, min_sigma_deg: float = 2.0) -> Up | None:
+    """Up from photos taken level and upright (a terrestrial or facade capture): every image x axis
+    horizontal and the image y axis pointing down on average. A prior for level photos only: the
+    mean pitch of hand-held photos is not zero, so its uncertainty is never under ``min_sigma_deg``
+    (it holds only what the positions or GCPs cannot, e.g. the roll about a single strip's line)."""
+    R = _axes(rec)
+    if len(R) < 3:
+        return None
+    Rs = np.array(list(R.values()))
+    xs, ys = Rs[:, 0, :], Rs[:, 1, :]
+    u = -ys.mean(0)
+    if np.linalg.norm(u) < 0.5:
+        return None
+    u /= np.linalg.norm(u)
+    w, V = np.linalg.eigh(xs.T @ xs / len(xs))
+    if w[1] >= 4.0 * max(w[0], 1e-12):   # x axes in several directions: their common normal
+        v = V[:, 0] * np.sign(V[:, 0] @ u)
+        if np.degrees(np.arccos(np.clip(v @ u, -1, 1))) < 30.0:
+            u = v
+    a = _angles_deg(u, -ys)
+    spread = float(1.4826 * np.median(a))
+    return Up(u, "level prior", len(Rs), spread, max(spread / np.sqrt(len(Rs)), min_sigma_deg))
 
 
 def block_up(rec: pycolmap.Reconstruction, metas: dict) -> Up | None:

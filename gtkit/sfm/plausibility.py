@@ -1,4 +1,4 @@
-"""Is a georegistered aerial block physically plausible? Checked after every georegistration, so
+"""Is a georegistered block physically plausible? Checked after every georegistration, so
 that a block placed upside down, tilted or at a wrong scale is refused with its cause instead of
 being reported as success (and built upon by every later stage).
 
@@ -12,8 +12,14 @@ being reported as success (and built upon by every later stage).
 - **scale**: the cameras' height above what they see agrees with the DJI relative altitude (above
   the take-off point) where photos carry it, and is a drone's height (2 m - 3 km) anyway.
 
-``check_block(rec, metas)`` returns the figures, and raises :class:`RegistrationError` with one line
-naming the first check that fails.
+The aerial checks (cameras above what they see, photos looking down, level by the aerial prior,
+a drone's height) hold for aerial blocks only. A block whose photos look level (a terrestrial or
+facade capture) is plausible where the positions or GCPs it was fitted to hold its tilt
+(``held_by``: what holds it, as the georegistration found); where nothing holds it, it is refused
+naming that. Gimbal attitude and the DJI relative altitude are measurements: checked on every block.
+
+``check_block(rec, metas, held_by=...)`` returns the figures, and raises :class:`RegistrationError`
+with one line naming the first check that fails.
 """
 from __future__ import annotations
 
@@ -63,11 +69,30 @@ def block_figures(rec: pycolmap.Reconstruction, metas: dict | None = None, max_p
             "height_over_relative_altitude": float(np.median(rel)) if rel else None}
 
 
-def check_block(rec: pycolmap.Reconstruction, metas: dict | None = None, *, min_share_above: float = 0.8,
-                max_view_z: float = -0.1, max_attitude_deg: float = 30.0, max_tilt_deg: float = 10.0, rel_alt_ratio: float = 3.0,
+def check_block(rec: pycolmap.Reconstruction, metas: dict | None = None, *, held_by: str | None = None,
+                min_share_above: float = 0.8, max_view_z: float = -0.1, max_attitude_deg: float = 30.0,
+                max_tilt_deg: float = 10.0, rel_alt_ratio: float = 3.0,
                 height_range_m: tuple[float, float] = (2.0, 3000.0)) -> dict:
-    """The figures of :func:`block_figures`; raises RegistrationError naming the first failed check."""
+    """The figures of :func:`block_figures`; raises RegistrationError naming the first failed check.
+    ``held_by``: what holds the block's tilt where positions or GCPs do ("8 GPS positions"), else None."""
     f = block_figures(rec, metas)
+    level = f["median_view_z"] is not None and f["median_view_z"] > max_view_z
+    f["capture"] = "level" if level else "aerial"
+    f["held_by"] = held_by
+    if level and held_by:
+        # a terrestrial / facade capture placed by its positions or GCPs: the aerial checks do not apply
+        f["aerial_checks"] = f"not applied: the photos look level (z = {f['median_view_z']:+.2f}), the tilt held by {held_by}"
+        if f["median_attitude_disagreement_deg"] is not None and f["median_attitude_disagreement_deg"] > max_attitude_deg:
+            raise RegistrationError(
+                f"implausible result: the camera rotations disagree with the photos' gimbal attitude by "
+                f"{f['median_attitude_disagreement_deg']:.0f} deg (median over {f['n_with_attitude']} photos)")
+        return f
+    if level and f["median_view_z"] < 0.3:
+        # level photos, nothing holding their tilt: that, not "below the ground", is the cause
+        raise RegistrationError(
+            f"implausible result: the photos look level (median viewing direction z = {f['median_view_z']:+.2f}) and "
+            "no positions or GCPs hold the block's tilt (aerial photos look down; a level capture needs surveyed "
+            "positions or GCPs)")
     if f["share_above_their_points"] is not None and f["share_above_their_points"] < min_share_above:
         raise RegistrationError(
             f"implausible result: the cameras sit below the ground they see in "
@@ -75,7 +100,8 @@ def check_block(rec: pycolmap.Reconstruction, metas: dict | None = None, *, min_
     if f["median_view_z"] is not None and f["median_view_z"] > max_view_z:
         raise RegistrationError(
             f"implausible result: the photos look {'up' if f['median_view_z'] > 0 else 'level'} "
-            f"(median viewing direction z = {f['median_view_z']:+.2f}; aerial photos look down)")
+            f"(median viewing direction z = {f['median_view_z']:+.2f}) and no positions or GCPs hold the block's tilt "
+            "(aerial photos look down; a level capture needs surveyed positions or GCPs)")
     t = f["tilt_from_gravity_deg"]
     if t is not None and t > max_tilt_deg + 3.0 * f["gravity_spread_deg"]:
         raise RegistrationError(
