@@ -7,12 +7,15 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import pkgutil
 import sys
+import tempfile
+from pathlib import Path
 
 from . import __version__, commands
 from .errors import GtkitError
-from .logs import quiet_terminal
+from .logs import quiet_terminal, write_traceback
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,6 +31,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _error_file(args) -> Path:
+    """Where an unexpected failure's traceback goes: the project's work/errors/ where the command
+    names a project folder, else a temporary file."""
+    root = Path(str(getattr(args, "project", "") or ""))
+    if str(root) and (root / "project.toml").is_file():
+        return root / "work" / "errors" / f"{args.command}.txt"
+    return Path(tempfile.gettempdir()) / f"gtkit-error-{os.getpid()}.txt"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -41,11 +53,19 @@ def main(argv: list[str] | None = None) -> int:
         with quiet as log:
             rv = args.func(args)
     except GtkitError as e:
-        print(f"gtkit: error: {e}" + (f" (full log: {log.log_path})" if log.log_path else ""), file=sys.stderr)
+        told = getattr(e, "traceback_file", None) is not None  # the message names its own file
+        print(f"gtkit: error: {e}" + (f" (full log: {log.log_path})" if log.log_path and not told else ""),
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("gtkit: interrupted; finished stages are kept and a re-run resumes", file=sys.stderr)
         return 130
+    except Exception as e:  # a bug, not bad input: one line on the terminal, the traceback in a file
+        where = write_traceback(_error_file(args), f"gtkit {args.command}")
+        first = str(e).splitlines()[0] if str(e) else ""
+        print(f"gtkit: error: {args.command} failed unexpectedly ({type(e).__name__}{': ' + first if first else ''}); "
+              f"the traceback is in {where} (please report it)", file=sys.stderr)
+        return 2
     return int(rv or 0)
 
 

@@ -129,3 +129,24 @@ def quiet_terminal(verbose: bool = False):
             cap.terminal[fd].close()
             os.close(cap.saved[fd])
 
+
+
+def write_traceback(path: str | Path, what: str) -> Path:
+    """Write the exception being handled (its traceback) to ``path`` (a fresh file, folders made) with
+    a first line saying ``what`` failed; returns the path it went to (a temporary file where ``path``
+    cannot be written). For the one-line message that replaces a traceback on the terminal."""
+    import tempfile
+    import time
+    import traceback
+
+    text = f"{time.strftime('%Y-%m-%d %H:%M:%S')} {what} failed unexpectedly:\n{traceback.format_exc()}"
+    try:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    except OSError:
+        fd, name = tempfile.mkstemp(prefix="gtkit-error-", suffix=".txt")
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        path = Path(name)
+    return path

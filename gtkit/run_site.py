@@ -38,7 +38,9 @@ import numpy as np
 
 from .errors import GtkitError
 from .io.atomic import write_json
+from .logs import write_traceback
 from .project import STAGE_RECORD, Project
+from .sfm import registration_record as record
 
 log = logging.getLogger(__name__)
 
@@ -176,7 +178,7 @@ def st_register(project, opts):
         raise Skip("no query sequences to register")
     r = run(project, resolve(RegisterSettings(), "register", project))
     return {"n_registered": r.get("n_registered"), "n_images": r.get("n_images"),
-            "errors": {s: i["error"] for s, i in (r.get("sequences") or {}).items() if i.get("status") == "error"}}
+            "errors": {s: i.get("error") for s, i in record.sequences(r).items() if not record.is_registered(i)}}
 
 
 def st_report(project, opts):
@@ -346,6 +348,12 @@ def run(root: str | Path, opts: RunOptions | None = None, progress: Callable[[St
         except GtkitError as e:
             failed = GtkitError(f"stage {name} failed: {e}")
             res = StageResult(name, "failed", round(time.time() - t0, 1), why=str(e))
+        except Exception as e:  # a bug, not bad input: one line here, the traceback in a file
+            where = write_traceback(project.paths.work / "errors" / f"{name}.txt", f"stage {name}")
+            why = f"unexpected {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}".rstrip(": ")
+            failed = GtkitError(f"stage {name} failed ({why}); the traceback is in {where} (please report it)")
+            failed.traceback_file = where
+            res = StageResult(name, "failed", round(time.time() - t0, 1), why=why)
         else:
             after = _record_time(project, name)
             status = "up to date" if (before is not None and after == before) or info.pop("_up_to_date", False) else "ran"
@@ -415,10 +423,10 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
                             "median_sigma_rot_deg": _median(i.get("sigma_rot_deg") for i in imgs),
                             "median_reproj_px": reg.get("median_reproj_px"),
                             "median_tiepoint_reproj_px": reg.get("median_tiepoint_reproj_px"),
-                            "registered_by": {s: i.get("registered_by") for s, i in (reg.get("sequences") or {}).items()
-                                              if i.get("status") == "registered"},
-                            "errors": {s: i.get("error") for s, i in (reg.get("sequences") or {}).items()
-                                       if i.get("status") == "error"}}
+                            "registered_by": {s: record.short(i) for s, i in record.sequences(reg).items()
+                                              if record.is_registered(i)},
+                            "errors": {s: i.get("error") for s, i in record.sequences(reg).items()
+                                       if not record.is_registered(i)}}
     ali = _load(P.reports / "overlays" / "alignment.json")
     if ali:
         out["overlays"] = {k: ali.get(k) for k in ("median_misalignment_px", "median_edge_distance_px")}

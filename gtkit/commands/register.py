@@ -22,6 +22,7 @@ def register(sub):
 def run(args):
     from ..project import Project
     from ..settings import resolve
+    from ..sfm import registration_record as record
     from ..sfm.register import RegisterSettings
     from ..sfm.register import run as run_register
 
@@ -32,22 +33,9 @@ def run(args):
         "cross.enabled": False if args.no_auto_ties else None})
     r = run_register(project, s, force=args.force)
     failed = 0
-    for seq, info in r["sequences"].items():
-        if info["status"] == "error":
-            failed += 1
-            print(f"{seq}: ERROR {info['error']}")
-        elif info.get("registered_by") == "automatic matches":
-            a = info["automatic"]
-            print(f"{seq}: registered by automatic matches ({info['clicks']}): {a['n_photos_agreeing']}/{a['n_photos']} "
-                  f"photos agree, {a['n_sim3_inliers']}/{a['n_point_pairs']} block-reference point pairs Sim(3) inliers, "
-                  f"Sim(3) from {a.get('sim3_from')}; {info['n_tiepoints_final_ba']} clicked tie points in the final BA")
-        elif info.get("registered_by", "").startswith("single photos"):
-            n = sum(1 for r_ in (info.get("left_out_by_sfm") or {}).values() if r_.get("resected"))
-            print(f"{seq}: {info['registered_by']}: {n}/{len(info.get('left_out_by_sfm') or {})} photos resected "
-                  "from automatic matches to the reference")
-        else:
-            print(f"{seq}: registered, {info['n_sim3_inliers']}/{info['n_tiepoints']} tie points Sim(3) inliers, {info['n_tiepoints_final_ba']} in the final BA, "
-                  f"Sim(3) RMSE {info['sim3_rmse_m']:.3f} m")
+    for seq, info in record.sequences(r).items():
+        failed += not record.is_registered(info)
+        print(f"{seq}: {record.describe(info)}")
     parts = [f"{what} {r[key]:.2f} px" for what, key in (
         ("median reprojection: SfM points", "median_reproj_px"), ("clicked tie points", "median_tiepoint_reproj_px"),
         ("automatic tie points", "median_auto_tiepoint_reproj_px")) if r.get(key) is not None]

@@ -15,6 +15,7 @@ from ..io.poses import read_poses
 from ..project import Project
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
 from .register import STAGE as REGISTER_STAGE
+from . import registration_record as record
 
 
 def _load(p: Path):
@@ -67,8 +68,8 @@ def collect(project: Project) -> dict:
                                              "n_registered", "n_images", "sequences", "bad_tiepoints",
                                              "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba")})
         rep["per_image"] = {n: dict(v) for n, v in reg.get("images", {}).items()}
-        rep["sequences_needing_clicks"] = {q: s["error"] for q, s in (reg.get("sequences") or {}).items()
-                                           if s.get("needs_clicks")}
+        rep["sequences_needing_clicks"] = {q: s.get("error") for q, s in record.sequences(reg).items()
+                                           if record.outcome(s) == record.NEEDS_CLICKS}
     else:
         rep.update({"median_reproj_px": None, "median_tiepoint_reproj_px": None, "n_registered": 0, "n_images": 0,
                     "per_image": {}})
@@ -109,18 +110,6 @@ def scene_links(folder: Path) -> list[str]:
     return ["", "## 3D scene (`gtkit view`)", ""] + [f"![{n}]({n})" for n in shots] if shots else []
 
 
-def _sequence_line(s: dict) -> str:
-    if s["status"] == "error":
-        return f"ERROR: {s['error']}"
-    if s.get("registered_by") == "automatic matches":
-        a = s["automatic"]
-        return (f"registered by automatic matches ({s.get('clicks')}); {a['n_photos_agreeing']}/{a['n_photos']} photos "
-                f"agree, {a['n_sim3_inliers']}/{a['n_point_pairs']} block-reference point pairs Sim(3) inliers, Sim(3) "
-                f"from {a.get('sim3_from')}; {s.get('n_tiepoints_final_ba')} clicked tie points in the final BA")
-    return (f"registered; {s['n_sim3_inliers']}/{s['n_tiepoints']} tie points Sim(3) inliers, "
-            f"{s.get('n_tiepoints_final_ba')} in the final BA, Sim(3) RMSE {s['sim3_rmse_m']:.3f} m")
-
-
 def _markdown(rep: dict, folder: Path, checks: dict) -> str:
     L = [f"# Pseudo-GT report: {rep['project']}", ""]
     L += ["| figure | value |", "|---|---|",
@@ -131,10 +120,10 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
           f"{rep.get('n_auto_tiepoints_in_ba', 0)} |"]
     seqs = rep.get("sequences") or {}
     if seqs:
-        by = [s.get("registered_by", "clicked tie points") for s in seqs.values() if s["status"] == "registered"]
-        L.append(f"| sequences by clicked tie points / by automatic matches (no clicks) / need clicks | "
-                 f"{by.count('clicked tie points')} / {by.count('automatic matches')} / "
-                 f"{len(rep.get('sequences_needing_clicks') or {})} of {len(seqs)} |")
+        n = record.counts(seqs)
+        L.append(f"| sequences by clicked tie points / by automatic matches (no clicks) / as single photos / "
+                 f"need clicks / not registered otherwise | {n[record.CLICKED]} / {n[record.AUTOMATIC]} / "
+                 f"{n[record.SINGLE_PHOTOS]} / {n[record.NEEDS_CLICKS]} / {n[record.ERROR]} of {len(seqs)} |")
     L += list(checks.get("rows", []))
     ref = rep.get("reference_block")
     if ref:
@@ -159,7 +148,7 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
         L += [f"- **{seq}**: {why}" for seq, why in need.items()]
     L += ["", "## Sequences", ""]
     for seq, s in (rep.get("sequences") or {}).items():
-        L.append(f"- **{seq}**: " + _sequence_line(s))
+        L.append(f"- **{seq}**: " + record.describe(s))
     for seq, b in (rep.get("query_blocks") or {}).items():
         for n, why in (b.get("unregistered") or {}).items():
             L.append(f"  - not in the {seq} block: {n}: {why}")
