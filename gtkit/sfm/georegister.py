@@ -215,6 +215,7 @@ def median_view_z(rec: pycolmap.Reconstruction, R: np.ndarray | None = None) -> 
 
 AERIAL_VIEW_Z = -0.26    # photos looking more than 15 deg below the horizon: an aerial view
 CONSISTENT_CHI2 = 9.21   # 99 % of a chi-square with 2 degrees of freedom (two tilt axes)
+PRIOR_BIAS_DEG = 1.5     # a gravity estimate's systematic error (gimbal calibration, camera mount)
 
 
 @dataclass
@@ -273,11 +274,15 @@ def choose_gps_fit(free: Sim3Fit | None, free_error: str | None, grav, up, src: 
                              f"the aerial prior does not apply; the positions hold the tilt to {held}", None, hold)
         prior = level_up
         note = f"photos level under the positions (z = {vz:+.2f}): the aerial prior does not apply; "
+    if prior is None and level_up is not None and not aerial_view:
+        prior = level_up
     if prior is None:
         return GpsChoice("free", f"the positions hold the tilt to {held} (no gravity estimate)", None, hold)
     total, comp = tilt_between(R, prior.vector, hold)
     var_pos, var_pri = hold.sigma_deg ** 2, max(prior.sigma_deg, 0.01) ** 2
-    chi2 = float(np.sum(comp ** 2 / (var_pos + var_pri)))
+    # agreement is judged with the prior's systematic error too (a gimbal's or a camera mount's bias
+    # does not average down over photos): never under PRIOR_BIAS_DEG
+    chi2 = float(np.sum(comp ** 2 / (var_pos + max(prior.sigma_deg, PRIOR_BIAS_DEG) ** 2)))
     rec_ = {"prior": prior.source, "prior_sigma_deg": round(float(prior.sigma_deg), 4), "positions_hold": hold.record(),
             "free_tilt_from_prior_deg": round(total, 4), "chi2": round(chi2, 2), "free_view_z": vz}
     if total > 60.0 or chi2 > CONSISTENT_CHI2:
