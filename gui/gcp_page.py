@@ -46,6 +46,11 @@ class GcpView(ImageView):
             return
         super().mousePressEvent(e)
 
+    def mouseDoubleClickEvent(self, e):
+        # two clicks in quick succession at one screen spot are two placements (the next photo
+        # opens centred where the last one was), never a double click that places nothing
+        self.mousePressEvent(e)
+
 
 class SetClick(QUndoCommand):
     """Place (or move) ``gcp``'s click in ``photo``; undo restores what was there."""
