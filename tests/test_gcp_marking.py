@@ -148,6 +148,15 @@ def test_predictions_after_the_gps_fit_then_clicks_refit_and_check_points(tiny_s
         assert got.keys() == cl.keys() and all(np.allclose(got[k], cl[k], atol=1e-3) for k in cl)
     pts2, clicks2 = load_marking(proj)   # read back as the page does
     assert clicks2.keys() == clicks.keys() and pts2[1].check
+    # gtkit sfm reads them: the check point stays out of the fit, the report lists both kinds
+    from gtkit.sfm.blocks import run_reference
+
+    geo = run_reference(root, force=True)["georegistration"]
+    assert geo["n_gcp_in_fit"] == 3 and geo["n_checkpoints"] == 1 and not geo["gcp_residuals"]["gcp02"]["in_fit"]
+    assert geo["gcp_residuals"]["gcp02"]["err_m"] < 0.35
+    md = (root / "reports/reference.md").read_text()
+    assert "| gcp02 | check point |" in md and "| gcp01 | GCP |" in md
+    assert "- RMSE of 3 GCPs: X" in md and "- RMSE of 1 check points: X" in md and "(never in the fit)" in md
 
 
 def test_no_gps_three_gcps_place_the_block_and_predict_the_rest(tiny_sample, tmp_path):

@@ -230,12 +230,53 @@ def _fit(block: Block, used: list[tuple[GCPPoint, np.ndarray]]) -> tuple[Similar
                   if k else "the block is not placed: click 3 GCPs in 2+ photos each"), None, {"k": k}
 
 
+def _tri_cov(block: Block, X: np.ndarray, photos: list[str], click_sigma_px: float) -> np.ndarray | None:
+    """Covariance (block frame) of a point triangulated from clicks in ``photos`` of ``click_sigma_px``."""
+    A = np.zeros((3, 3))
+    for n in photos:
+        J = _jacobian(block.cams[n], block.poses[n], X)[0]
+        A += J.T @ J
+    try:
+        return click_sigma_px ** 2 * np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _sim_rows(Y: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """d(world point)/d(shift, small rotation, log scale) of a Sim(3) at world point Y (3x7),
+    rotation and scale about ``c``."""
+    from ..pose import skew
+
+    d = Y - c
+    return np.hstack([np.eye(3), -skew(d), d[:, None]])
+
+
+def _sim_cov(sim: Similarity, used, covs_w: list[np.ndarray], c: np.ndarray) -> np.ndarray | None:
+    """7x7 covariance of a Sim(3) fitted to GCPs (their triangulation's and coordinates' covariances
+    ``covs_w``, world frame), scaled up by the residuals' chi-square where it exceeds its dof."""
+    N = np.zeros((7, 7))
+    chi2 = 0.0
+    for (p, x), C in zip(used, covs_w):
+        W = np.linalg.inv(C)
+        A = _sim_rows(p.xyz, c)
+        N += A.T @ W @ A
+        r = sim.apply(x[None])[0] - p.xyz
+        chi2 += float(r @ W @ r)
+    dof = 3 * len(used) - 7
+    try:
+        cov = np.linalg.inv(N)
+    except np.linalg.LinAlgError:
+        return None
+    return cov * max(1.0, chi2 / dof if dof > 0 else 1.0)
+
+
 def solve(block: Block, points: list[GCPPoint], clicks: dict[str, dict[str, tuple[float, float]]],
           click_sigma_px: float = CLICK_SIGMA_PX, max_px: float = 4.0) -> Solution:
     """See the module doc. ``clicks``: {GCP name: {photo: (x, y)}} (photos outside the block are kept
     but not used)."""
     states: dict[str, GCPState] = {}
     used = []
+    covs: dict[str, np.ndarray | None] = {}   # triangulated GCPs' covariance, block frame
     for p in points:
         c = {ph: xy for ph, xy in clicks.get(p.name, {}).items() if ph in block.poses}
         st = states[p.name] = GCPState(p.name, p.check, len(clicks.get(p.name, {})))
@@ -252,9 +293,14 @@ def solve(block: Block, points: list[GCPPoint], clicks: dict[str, dict[str, tupl
             continue
         st.xyz_block = tri.xyz
         st.residual_px = float(np.sqrt(np.mean(tri.residuals_px[tri.used] ** 2)))
+        covs[p.name] = _tri_cov(block, tri.xyz, [n for n, u in zip(names, tri.used) if u], click_sigma_px)
         if not p.check:
             used.append((p, tri.xyz))
     sim, how, s0, lev = _fit(block, used)
+    if sim is not None and "centre" in lev and all(covs.get(p.name) is not None for p, _ in used):
+        Rw = sim.scale * sim.R   # block -> world, linear part
+        lev["cov_theta"] = _sim_cov(sim, used, [Rw @ covs[p.name] @ Rw.T + _point_cov_world(p, 0.0, 0.0)
+                                                for p, _ in used], lev["centre"])
     for p, _ in used:
         states[p.name].in_fit = sim is not None and lev["k"] > 0
     if sim is not None:
@@ -267,17 +313,14 @@ def solve(block: Block, points: list[GCPPoint], clicks: dict[str, dict[str, tupl
         st = states[p.name]
         if st.xyz_block is not None:   # its own clicks say where it is, whatever the fit
             X, src = st.xyz_block, "triangulated"
-            names = [n for n in st.residuals_px if np.isfinite(st.residuals_px[n])]
-            A = sum(_jacobian(block.cams[n], block.poses[n], X)[0].T @ _jacobian(block.cams[n], block.poses[n], X)[0]
-                    for n in names)
-            try:
-                cov_b = click_sigma_px ** 2 * np.linalg.inv(A)
-            except np.linalg.LinAlgError:
-                cov_b = None
+            cov_b = covs.get(p.name)
         elif sim is not None:
             X, src = np.linalg.solve(sim.R * sim.scale, p.xyz - sim.t), "coordinates"
             if lev["k"] == 0:
                 cov_w = _point_cov_world(p, block.sigma_h_m or 1.0, block.sigma_v_m or block.sigma_h_m or 1.0)
+            elif lev.get("cov_theta") is not None:   # through the Sim(3)'s own uncertainty
+                A = _sim_rows(p.xyz, lev["centre"])
+                cov_w = A @ lev["cov_theta"] @ A.T + _point_cov_world(p, 0.0, 0.0)
             else:
                 f = 1.0 + 1.0 / lev["k"]
                 if "spread" in lev:

@@ -2,6 +2,8 @@
 photos, written by ``gtkit sfm DIR --block reference`` (from the block's summary only; no truth)."""
 from __future__ import annotations
 
+import numpy as np
+
 from ..io.atomic import write_json, write_text
 from ..project import Paths
 
@@ -20,6 +22,8 @@ def reference_report(summary: dict) -> dict:
             "georegistration": {**{k: geo.get(k) for k in GEO_KEYS if k in geo},
                                 **({"rmse_m": geo["rmse_inliers_m"]} if "rmse_inliers_m" in geo else {})},
             "gcp_residuals": geo.get("gcp_residuals", {}),
+            "gcp_rmse_xyz_m": gcp_rmse(geo.get("gcp_residuals", {}), False),
+            "checkpoint_rmse_xyz_m": gcp_rmse(geo.get("gcp_residuals", {}), True),
             "held_by_positions": summary.get("held_by_positions"),
             "gcp_clicks_outside_block": summary.get("gcp_clicks_outside_block", {}),
             "models": [{k: v for k, v in m.items() if k != "photos"} for m in summary.get("models", [])],
@@ -83,6 +87,44 @@ def _seeded_line(seeded: dict | None) -> str:
             + f"; positions scatter {_f(seeded.get('position_scatter_m'))} m about the block")
 
 
+def _rms(v) -> float | None:
+    v = [float(x) for x in v if x is not None and np.isfinite(x)]
+    return float(np.sqrt(np.mean(np.square(v)))) if v else None
+
+
+def gcp_rmse(residuals: dict, check: bool) -> dict | None:
+    """RMSE of the X / Y / Z errors (and 3D) of the GCPs (``check`` False) or check points."""
+    rows = [r for r in residuals.values() if r.get("status") == "ok" and bool(r.get("check")) == check
+            and not r.get("outlier")]
+    if not rows:
+        return None
+    return {"n": len(rows), **{k: _rms([r[f"d{k}_m"] for r in rows]) for k in ("x", "y", "z")},
+            "3d": _rms([r["err_m"] for r in rows])}
+
+
+def gcp_table(residuals: dict) -> list[str]:
+    """Each GCP and check point (X / Y / Z error, image residual, photos) and the RMSE of both kinds,
+    as a survey report lists them."""
+    out = ["", "| point | kind | dX (m) | dY (m) | dZ (m) | 3D (m) | image residual (px, RMS) | photos (used / clicked) |",
+           "|---|---|---|---|---|---|---|---|"]
+    for n, r in residuals.items():
+        kind = "check point" if r.get("check") else ("GCP, outlier" if r.get("outlier") else "GCP")
+        if r["status"] == "ok":
+            # the clicks used are those the triangulation kept: the smallest residuals
+            res = _rms(sorted(x for x in r.get("click_residuals_px", []) if np.isfinite(x))[:r["clicks_used"]])
+            out.append(f"| {n} | {kind} | {r['dx_m']:+.3f} | {r['dy_m']:+.3f} | {r['dz_m']:+.3f} | {r['err_m']:.3f} | "
+                       f"{_f(res, 2)} | {r['clicks_used']} / {r['clicks_total']} |")
+        else:
+            out.append(f"| {n} | {kind} | – | – | – | – | – | {r.get('reason', '')} |")
+    out.append("")
+    for label, check in (("GCPs", False), ("check points", True)):
+        m = gcp_rmse(residuals, check)
+        if m:
+            out.append(f"- RMSE of {m['n']} {label}: X {m['x']:.3f} m, Y {m['y']:.3f} m, Z {m['z']:.3f} m, "
+                       f"3D {m['3d']:.3f} m" + (" (never in the fit)" if check else ""))
+    return out
+
+
 def write_reference_report(paths: Paths, summary: dict) -> dict:
     rep = reference_report(summary)
     write_json(paths.reports / "reference.json", rep)
@@ -112,14 +154,7 @@ def write_reference_report(paths: Paths, summary: dict) -> dict:
     elif h:
         lines.append(f"- not held by its positions: {h.get('reason')}")
     if rep["gcp_residuals"]:
-        lines += ["", "| point | kind | residual (m) | dx | dy | dz | clicks used |", "|---|---|---|---|---|---|---|"]
-        for n, r in rep["gcp_residuals"].items():
-            kind = "check" if r.get("check") else ("GCP, outlier" if r.get("outlier") else "GCP")
-            if r["status"] == "ok":
-                lines.append(f"| {n} | {kind} | {r['err_m']:.3f} | {r['dx_m']:+.3f} | {r['dy_m']:+.3f} | {r['dz_m']:+.3f} | "
-                             f"{r['clicks_used']}/{r['clicks_total']} |")
-            else:
-                lines.append(f"| {n} | {kind} | – | | | | {r['reason']} |")
+        lines += gcp_table(rep["gcp_residuals"])
     for n, photos in rep["gcp_clicks_outside_block"].items():
         lines.append(f"- GCP {n} is clicked in photos that are not reference photos: {', '.join(photos)}")
     lines += ["", "## Cameras", "", "| camera | model | size | params | |", "|---|---|---|---|---|"]
