@@ -614,9 +614,21 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                                         "(its tilt is held by gravity)"}
     elif kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3:
         # a photo the seeded mapper found off its prior stays out of the priors, even inside the Sim(3)'s threshold
-        summary["held_by_positions"] = hold_by_positions(rec, positions, set(geo.get("outliers", []))
-                                                         | set(mapper_record.get("prior_outliers", [])), accuracy,
-                                                         num_threads=settings.num_threads)
+        before_ba = pycolmap.Reconstruction(rec)
+        held = hold_by_positions(rec, positions, set(geo.get("outliers", []))
+                                 | set(mapper_record.get("prior_outliers", [])), accuracy,
+                                 num_threads=settings.num_threads)
+        res = held.get("residual_median_m") or {}
+        if held.get("applied") and res and res["after"] > max(2.0 * res["before"], res["before"] + 0.05):
+            # the BA moved the block off the positions it was fitted to (pycolmap's prior alignment
+            # with its RANSAC threshold left at 0 did so on surveyed blocks: 0.069 -> 5.46 m): keep
+            # the georegistered block as it was, and say so
+            rec = before_ba
+            held = {**held, "applied": False, "reverted": True,
+                    "reason": f"the pose-prior BA moved the block off its positions (residual median "
+                              f"{res['before']:.3f} -> {res['after']:.3f} m): the georegistered block kept"}
+            log.warning("reference block: %s", held["reason"])
+        summary["held_by_positions"] = held
     for k, info in enumerate(models_info):
         info["kept"] = k in kept
         if k in duplicate:

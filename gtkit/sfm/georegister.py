@@ -216,6 +216,8 @@ def median_view_z(rec: pycolmap.Reconstruction, R: np.ndarray | None = None) -> 
 AERIAL_VIEW_Z = -0.26    # photos looking more than 15 deg below the horizon: an aerial view
 CONSISTENT_CHI2 = 9.21   # 99 % of a chi-square with 2 degrees of freedom (two tilt axes)
 PRIOR_BIAS_DEG = 1.5     # a gravity estimate's systematic error (gimbal calibration, camera mount)
+PRIOR_FLOOR_DEG = 0.05   # no gravity estimate is weighted as surer than this (photos of a synthetic or
+                         # perfectly level camera agree to 0.002 deg; a real mount does not)
 
 
 @dataclass
@@ -279,7 +281,7 @@ def choose_gps_fit(free: Sim3Fit | None, free_error: str | None, grav, up, src: 
     if prior is None:
         return GpsChoice("free", f"the positions hold the tilt to {held} (no gravity estimate)", None, hold)
     total, comp = tilt_between(R, prior.vector, hold)
-    var_pos, var_pri = hold.sigma_deg ** 2, max(prior.sigma_deg, 0.01) ** 2
+    var_pos, var_pri = hold.sigma_deg ** 2, max(prior.sigma_deg, PRIOR_FLOOR_DEG) ** 2
     # agreement is judged with the prior's systematic error too (a gimbal's or a camera mount's bias
     # does not average down over photos): never under PRIOR_BIAS_DEG
     chi2 = float(np.sum(comp ** 2 / (var_pos + max(prior.sigma_deg, PRIOR_BIAS_DEG) ** 2)))
