@@ -61,13 +61,13 @@ def _scan(photos: list[Path]) -> tuple[dict, list]:
 
 def _points_crs(path) -> str | None:
     """The CRS a GCP coordinates file names on its first line (None: it names none)."""
-    from .gcp.points import _is_crs_line
+    from .gcp.points import is_crs_line
     from .io.odm import parse_odm_crs
 
     for n, ln in enumerate(Path(path).read_text(encoding="utf-8-sig").splitlines(), 1):
         s = ln.split("#", 1)[0].strip()
         if s:
-            if not _is_crs_line(s):
+            if not is_crs_line(s):
                 return None
             try:
                 return parse_odm_crs(s, path)

@@ -209,3 +209,12 @@ def test_init_with_gcp_points_and_import(tiny_sample, tmp_path, capsys):
     more = _write(tmp_path, "g3 241915.6 3379451.7 21.1 0.01 0.02\n", "more.txt")
     assert main(["gcp", "import", str(site), str(more)]) == 0
     assert [p.name for p in read_points(site / "gcp/points.txt", Project.load(site).frame)[0]] == ["g1", "g2", "g3"]
+    # a GCP known only from a gcp_list.txt clicked elsewhere: its clicks show, and removing its last
+    # click keeps its coordinates (in gcp/points.txt)
+    proj = Project.load(site)
+    (site / "gcp_list.txt").write_text("EPSG:32650\n241870.0 3379490.0 21.0 100.5 200.5 R01_001_N.jpg g7\n")
+    pts, clicks = load_marking(proj)
+    assert clicks == {"g7": {"reference/R01_001_N.jpg": (100.5, 200.5)}} and [p.name for p in pts][-1] == "g7"
+    save_clicks(proj, pts, {})
+    assert "g7" not in (site / "gcp_list.txt").read_text()
+    assert [p.name for p in load_marking(proj)[0]] == ["g1", "g2", "g3", "g7"]

@@ -132,6 +132,14 @@ def test_gcp_page_offscreen_click_undo_restore(gcp_site, tmp_path):
     assert (done[0][1].split("/")[-1]) not in {c.image for g in _gcps_of_file(root) for c in g.clicks}
     w.undo_()
     assert len([c for g in _gcps_of_file(root) for c in g.clicks]) == 3
+    # coordinates imported from the page (as "Import coordinates..." does): gcp04 becomes a check point
+    x, y, z = truth.frame.local_to_crs(truth.xyz["gcp04"])
+    f = tmp_path / "more.txt"
+    f.write_text(f"{truth.frame.crs_spec}\ngcp04 {x:.4f} {y:.4f} {z:.4f} 0.02 0.03 check\n")
+    pg.import_dialog(str(f))
+    kinds = {pg.table.topLevelItem(i).text(0): pg.table.topLevelItem(i).text(1) for i in range(pg.table.topLevelItemCount())}
+    assert kinds == {"gcp01": "GCP", "gcp02": "GCP", "gcp03": "GCP", "gcp04": "check"} and pg.store.point("gcp04").check
+    assert len(pg.store) == 3
     where = (pg.gcp, pg.photo)
     w.save_session()
     w.close()

@@ -47,6 +47,7 @@ class Block:
     sigma_h_m: float | None = None  # the placement's 1-sigma accuracy (placed blocks)
     sigma_v_m: float | None = None
     how: str = ""
+    by_gps: bool = False            # placed by 3+ GPS positions (its rotation and scale held by many points)
 
     @property
     def photos(self) -> list[str]:
@@ -87,7 +88,10 @@ def load_block(paths) -> Block:
         elif geo.get("rmse_inliers_m"):
             sh = sv = float(geo["rmse_inliers_m"])
         how = f"placed by {geo.get('fitted_to', 'georegistration')}"
-    return Block(poses, cams, seen, placed, sh, sv, how)
+        by_gps = int(geo.get("n_gps") or 0) >= 3
+    else:
+        by_gps = False
+    return Block(poses, cams, seen, placed, sh, sv, how, by_gps)
 
 
 @dataclass
@@ -201,16 +205,18 @@ def _fit(block: Block, used: list[tuple[GCPPoint, np.ndarray]]) -> tuple[Similar
     """world_from_block from the triangulated control GCPs ``used`` ((point, block xyz)); the fit in
     words; its residual scale (m); the leverage data.
 
-    A placed block keeps its rotation and scale (from many GPS positions they are better known than
+    A block placed by GPS keeps its rotation and scale (from many positions they are better known than
     from a few GCPs, measured on the tiny sample: a Sim(3) to 3 GCPs put the 4th 0.58 m off in Z, the
     shift 0.05 m) and is shifted onto the GCPs, unless with 4+ GCPs a Sim(3) predicts each
-    left-out GCP better than the shift does. An unplaced block gets a Sim(3) once 3 GCPs not on one
-    line are triangulated."""
+    left-out GCP better than the shift does. An unplaced block, or one placed by GCPs alone (an
+    earlier gcp_list.txt), gets a Sim(3) (with its covariance) once 3 GCPs not on one line are
+    triangulated."""
     k = len(used)
     src = np.array([x for _, x in used]).reshape(-1, 3)
     tgt = np.array([p.xyz for p, _ in used]).reshape(-1, 3)
     floor = max([FIT_FLOOR_M] + [p.acc_h or 0.0 for p, _ in used])
-    use_sim = not block.placed or (k >= 4 and _loo_rms(_sim3, src, tgt) < _loo_rms(_shift, src, tgt))
+    use_sim = (not block.by_gps or not block.placed
+               or (k >= 4 and _loo_rms(_sim3, src, tgt) < _loo_rms(_shift, src, tgt)))
     if use_sim:
         sim = _sim3(src, tgt)
         if sim is not None:

@@ -47,7 +47,7 @@ def points_path(paths) -> Path:
     return Path(paths.root) / POINTS_FILE
 
 
-def _is_crs_line(s: str) -> bool:
+def is_crs_line(s: str) -> bool:
     f = [x for x in _SPLIT.split(s.strip()) if x]
     if s.strip().upper().startswith(("EPSG:", "+PROJ", "PROJCS", "PROJCRS", "WGS84 UTM")):
         return True
@@ -79,7 +79,7 @@ def read_points(path: str | Path, frame: GeoFrame, crs: str | None = None) -> tu
     if not rows:
         raise GtkitError("no GCPs in this file (expected 'name x y z' lines)", path)
     file_crs = None
-    if _is_crs_line(rows[0][1]):
+    if is_crs_line(rows[0][1]):
         n, s = rows.pop(0)
         try:
             file_crs = parse_odm_crs(s.strip(), path)

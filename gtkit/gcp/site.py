@@ -69,7 +69,13 @@ def load_marking(project) -> tuple[list[GCPPoint], dict[str, dict[str, tuple[flo
 
 def save_clicks(project, points: list[GCPPoint], clicks: dict[str, dict[str, tuple[float, float]]]) -> Path:
     """Every click as ``gcp_list.txt`` (project CRS, full-resolution pixels, check points marked),
-    atomically; photos named by file name where that is unique (as ODM names them)."""
+    atomically; photos named by file name where that is unique (as ODM names them). A GCP known only
+    from ``gcp_list.txt`` that has no click left is kept in ``gcp/points.txt`` (its coordinates are
+    never lost with its last click)."""
+    P = project.paths
+    stored = {p.name for p in load_points(P, project.frame)}
+    if any(p.name not in stored and not clicks.get(p.name) for p in points):
+        write_points(points_path(P), points, project.frame)
     photos = reference_photos(project)
     base = [Path(n).name for n in photos]
     unique = {n for n in base if base.count(n) == 1}
