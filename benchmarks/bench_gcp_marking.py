@@ -14,6 +14,7 @@ against the truth (true poses, intrinsics, GCP positions), in full-resolution pi
   clicked them in first), the 4th predicted (every choice of 3 of the GCPs);
 - ``nogps+3``: the same on the block with no GPS (a Sim(3) to the 3 GCPs places it);
 - ``sigma``: the stated 1-sigma, and the share of predictions within 3 sigma of the truth;
+- ``snap``: the checkered target's centre found near each prediction (the page's A key) vs truth;
 - clicks per GCP to place it in 5 photos (a model, stated in the docs): with prediction the page
   opens the ranked photos zoomed at the prediction, 1 click each, + 2 (zoom out, find it) where the
   truth is outside the zoomed view, + 1 (N) for a ranked photo whose true position is outside the
@@ -136,6 +137,29 @@ def clicks_without(truth: Truth, gcp: str, photos: list[str]) -> int:
     return n
 
 
+def snap_stats(root: Path, sol, truth: Truth) -> dict:
+    """The A key: the checkered target's centre snapped near each prediction (as the page searches:
+    within min(3 sigma, 12 px)), vs the truth."""
+    import cv2
+
+    from gtkit.gcp.snap import snap_target
+
+    e, n = [], 0
+    for p in sol.predictions:
+        uv = truth.px(p.gcp, p.photo)
+        if uv is None:
+            continue
+        n += 1
+        xy, _ = snap_target(cv2.imread(str(root / "images" / p.photo), cv2.IMREAD_GRAYSCALE), (p.x, p.y),
+                            float(np.clip(3 * p.sigma_px, 4.0, 12.0)))
+        if xy is not None:
+            e.append(float(np.linalg.norm(xy - uv)))
+    e = np.array(e)
+    return {"share_snapped": len(e) / max(n, 1), "median_px": float(np.median(e)) if len(e) else None,
+            "p90_px": float(np.percentile(e, 90)) if len(e) else None, "max_px": float(e.max()) if len(e) else None,
+            "over_1px": int((e > 1).sum())}
+
+
 def stats(e: list[tuple[float, float]]) -> dict:
     a = np.array(e).reshape(-1, 2)
     if not len(a):
@@ -167,6 +191,7 @@ def bench_seed(work: Path, preset: str, seed: int) -> dict:
                 len(seen[n] & {p.photo for p in sol0.for_gcp(n)}) / len(seen[n]) for n in names]))
             res["clicks_per_gcp_with_prediction"] = float(np.mean([clicks_with(sol0, truth, n, photos) for n in names]))
             res["clicks_per_gcp_without_prediction"] = float(np.mean([clicks_without(truth, n, photos) for n in names]))
+            res["snap"] = snap_stats(root, sol0, truth)
         else:
             res["nogps_unplaced"] = block.how
         e3 = []

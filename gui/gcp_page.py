@@ -10,7 +10,9 @@ chosen number of photos the next GCP. After each click the GCP is triangulated, 
 (a shift or a Sim(3) to the clicked GCPs, or, with no GPS, a Sim(3) once 3 GCPs are clicked in 2+
 photos) and every prediction updated (:func:`gtkit.gcp.marking.solve`).
 
-Keys (through the main window): N / P next / previous photo, G next GCP, Delete removes the click
+Where a checkered target's centre is found near the prediction (:mod:`gtkit.gcp.snap`) it is
+shown as "A": the A key places the GCP there. Keys (through the main window): N / P next / previous
+photo, G next GCP, Delete removes the click
 in this photo, Ctrl+Z / Ctrl+Shift+Z undo / redo. Every edit is in ``gcp_list.txt`` at once
 (:mod:`gui.gcp_store`), where ``gtkit sfm`` / ``gtkit run`` read it.
 """
@@ -31,6 +33,7 @@ from .image_view import ImageView
 
 log = logging.getLogger(__name__)
 ROLE = Qt.ItemDataRole.UserRole
+SNAP_MAX_PX = 12.0     # a snapped mark is searched within min(3 sigma, this) of the prediction
 MIN_HALF_PX = 40.0     # the zoomed view spans at least +-this many photo pixels around the prediction
 SIGMAS_SHOWN = 4.0     # ... and at least +-this many sigma
 
@@ -95,6 +98,7 @@ class GcpPage(QWidget):
         self.store = GcpStore(project)
         self.gcp: str | None = None
         self.photo: str | None = None
+        self.snap: tuple[float, float] | None = None   # the target's centre found near the prediction
         self._restore_state: dict = {}
 
         self.import_button = QPushButton("Import coordinates...")
@@ -117,7 +121,7 @@ class GcpPage(QWidget):
         self.title = QLabel("photo")
         self.file_label = QLabel()
         self.file_label.setWordWrap(True)
-        help_ = QLabel("click = place the GCP here (then the next photo); N / P = next / previous photo, G = next GCP, "
+        help_ = QLabel("click = place the GCP here (then the next photo); A = accept the snapped target centre; N / P = next / previous photo, G = next GCP, "
                        "Delete = remove this photo's click, Ctrl+Z / Ctrl+Shift+Z; wheel zoom, right drag pan")
         help_.setWordWrap(True)
 
@@ -192,11 +196,14 @@ class GcpPage(QWidget):
         if photo is None or self.gcp is None:
             return
         self.photo = photo
+        self.snap = None
         self.view.clear_markers()
         self.view.show_image(self.paths.images / photo)
         self.title.setText(f"{self.gcp} in {photo}")
         sol = self.solution()
         pr = sol.at(self.gcp, photo) if sol else None
+        if pr is not None:
+            self.snap = self._snap(photo, pr)
         if view:
             self.view.set_view_state(view)
         elif pr is not None:
@@ -210,6 +217,26 @@ class GcpPage(QWidget):
         self.refresh()
         self.session_changed.emit()
         self.photo_shown.emit(self.gcp, photo)
+
+    def _snap(self, photo: str, pr) -> tuple[float, float] | None:
+        """A checkered target's centre near the prediction (:func:`gtkit.gcp.snap.snap_target`)."""
+        import cv2
+
+        from gtkit.gcp.snap import snap_target
+
+        gray = cv2.imread(str(self.paths.images / photo), cv2.IMREAD_GRAYSCALE)
+        if gray is None:
+            return None
+        sig = pr.sigma_px if np.isfinite(pr.sigma_px) else SNAP_MAX_PX
+        xy, _why = snap_target(gray, (pr.x, pr.y), float(np.clip(3.0 * sig, 4.0, SNAP_MAX_PX)))
+        return None if xy is None else (float(xy[0]), float(xy[1]))
+
+    def accept_snap(self):
+        """The A key: place the GCP at the snapped target centre (shown as "A" in the photo)."""
+        if self.snap is None:
+            self.status.emit("no checkered target centre found near the prediction: click it")
+            return
+        self.place(*self.snap)
 
     def step(self, d: int):
         photos = self.ranked_photos(self.gcp)
@@ -362,6 +389,9 @@ class GcpPage(QWidget):
         if pr is not None:
             self.view.set_marker("prediction", pr.x, pr.y, "suggestion", f"{self.gcp}?", movable=False)
             keep.add("prediction")
+        if self.snap is not None and self.store.click(self.gcp, self.photo) is None:
+            self.view.set_marker("snap", *self.snap, "suggestion_current", "A", movable=False)
+            keep.add("snap")
         for g, cl in self.store.clicks.items():
             if self.photo in cl:
                 x, y = cl[self.photo]

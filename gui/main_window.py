@@ -211,7 +211,10 @@ class MainWindow(QMainWindow):
         self.tiepoints.compute_suggestions()
 
     def accept_(self):
-        self.tiepoints.accept_suggestion()
+        if self._on_gcps():
+            self.gcps.accept_snap()
+        else:
+            self.tiepoints.accept_suggestion()
 
     def reject_(self):
         self.tiepoints.reject_suggestion()

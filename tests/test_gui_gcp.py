@@ -120,6 +120,14 @@ def test_gcp_page_offscreen_click_undo_restore(gcp_site, tmp_path):
         assert len(on_disk) == len(done)
         assert np.allclose(on_disk[(g, ph)], uv, atol=1.0 / pg.view.zoom())   # the pixel under the event
         assert pg.photo != ph   # the next photo opened
+    # the A key: the checkered target's centre found near the prediction, placed there
+    g, ph = pg.gcp, pg.photo
+    assert pg.snap is not None and "snap" in pg.view.markers
+    w.accept_()
+    xy = pg.store.click(g, ph)
+    assert np.linalg.norm(np.array(xy) - truth.px(g, ph)) < 0.5, (xy, truth.px(g, ph))
+    w.undo_()
+    pg.open_photo(ph)
     s = pg.solution().states["gcp01"]
     assert s.clicks_used == 3 and s.residual_px < 1.5 and np.linalg.norm(s.error_m) < 0.5
     assert "residual" in pg.detail.text() and "error X" in pg.detail.text()
