@@ -218,6 +218,9 @@ def test_init_with_gcp_points_and_import(tiny_sample, tmp_path, capsys):
     assert main(["gcp", "import", str(site), str(far)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and re.search(r"far.txt: line 1: GCP 'g9' is \d+ m outside the photos' footprint", err[0]), err
+    assert main(["gcp", "predict", str(site)]) == 2   # no block yet: says what to run
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no reference block yet: run `gtkit sfm SITE --block reference` first" in err[0], err
     more = _write(tmp_path, "g3 241915.6 3379451.7 21.1 0.01 0.02\n", "more.txt")
     assert main(["gcp", "import", str(site), str(more)]) == 0
     assert [p.name for p in read_points(site / "gcp/points.txt", Project.load(site).frame)[0]] == ["g1", "g2", "g3"]
