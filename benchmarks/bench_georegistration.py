@@ -4,7 +4,10 @@ Sample rows: a ``tiny`` sample per seed (generated once into WORK/base_<seed>), 
 the variants applied (gtkit.synth.variants), then the reference SfM + georegistration
 (``gtkit.sfm.blocks.run_reference``, defaults as a user runs them). Function rows (``level-*``):
 ``level_block`` (8 level photos of a wall along a 50 deg arc or a line, 5 mm survey, no attitude;
-SfM model exact, in an arbitrary frame) through ``georegister`` directly.
+SfM model exact, in an arbitrary frame) through ``georegister`` directly; ``level-half-clicks``: 6
+GCPs on the wall clicked at half size, no positions (``-off``: gcp_click_scale = "off", a refusal
+expected); ``level-consumer``: 11 photos 8 m from the wall, positions off by 0.5 m with no stated
+accuracy (they cannot hold the tilt: a refusal expected).
 
 Each row: the fit chosen (mode, and why, shortened), what it used, the block against truth (tilt,
 heading, median horizontal / vertical camera-centre offset; shape = centres after the best
@@ -42,7 +45,7 @@ SAMPLE_VARIANTS = {
     "gcp-only": ["no-gps"],
     "gcp-half": ["no-gps", "gcp-half"],
 }
-FUNCTION_VARIANTS = ("level-arc", "level-line", "level-half-clicks")
+FUNCTION_VARIANTS = ("level-arc", "level-line", "level-half-clicks", "level-half-clicks-off", "level-consumer")
 
 
 def _claims(geo: dict, lever: float | None = None) -> tuple[float | None, float | None]:
@@ -131,11 +134,16 @@ def function_row(seed: int, name: str) -> dict:
     from gtkit.synth.variants import level_block, level_block_gcps
 
     t0 = time.time()
-    rec, pos, acc, truth = level_block(seed, straight=name == "level-line")
-    gcps = level_block_gcps(truth, seed=seed, scale=0.5) if name == "level-half-clicks" else []
+    if name == "level-consumer":
+        rec, pos, acc, truth = level_block(seed, position_noise_m=0.5, n_photos=11, distance_m=8.0)
+        acc = None
+    else:
+        rec, pos, acc, truth = level_block(seed, straight=name == "level-line")
+    gcps = level_block_gcps(truth, seed=seed, scale=0.5) if name.startswith("level-half-clicks") else []
     try:
         if gcps:
-            geo = georegister(rec, {}, gcps, GeoregisterSettings(use="gcp"))
+            geo = georegister(rec, {}, gcps, GeoregisterSettings(
+                use="gcp", gcp_click_scale="off" if name.endswith("-off") else "auto"))
         else:
             geo = georegister(rec, pos, [], GeoregisterSettings(), acc, {})
         e = block_frame_errors(model_poses(rec), truth)

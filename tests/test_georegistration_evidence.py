@@ -58,6 +58,18 @@ def test_facade_line_takes_only_its_roll_from_gravity():
     assert rot < 2.0 and d < 0.01, (rot, d)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_facade_with_consumer_positions_is_refused_not_laid_flat(seed):
+    """11 level photos 8 m from a wall, positions off by 0.5 m with no stated accuracy: they cannot
+    hold the tilt, and the aerial prior must not make a floor of the wall (the cameras lie in a
+    plane that the level prior holds level): refused in one line naming what holds it."""
+    rec, pos, acc, truth = level_block(seed, position_noise_m=0.5, n_photos=11, distance_m=8.0)
+    with pytest.raises(RegistrationError) as e:
+        georegister(rec, pos, [], GeoregisterSettings(), None, {})
+    msg = str(e.value)
+    assert "look level" in msg and "GPS positions hold it only to" in msg and "\n" not in msg and len(msg) < 300, msg
+
+
 def test_level_block_without_evidence_is_refused_naming_it_and_with_it_is_plausible():
     rec, pos, acc, truth = level_block(0)
     georegister(rec, pos, [], GeoregisterSettings(), acc, {})

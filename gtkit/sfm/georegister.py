@@ -7,12 +7,23 @@ residuals reported), never under 3 sigma of a stated accuracy (geo.txt accuracy 
 GCPs together are weighted by their own scatter.
 Check points (``check`` in gcp_list.txt, or named in ``checkpoints``) never enter the fit.
 
-GPS alone (no usable GCPs): a free Sim(3) is kept only where the positions hold the block's tilt
-better than gravity does (RTK-grade, consistent heights); otherwise the tilt is held by gravity
-(gimbal attitude, else the aerial prior) and the positions give heading, scale and position, their
-altitudes an offset and a drift (gtkit.sfm.gps_fit). Every result is then checked for plausibility
-(gtkit.sfm.plausibility: cameras above what they see, photos looking down, rotations consistent
-with the gimbal attitude, scale) and refused with its cause when it fails."""
+GPS alone (no usable GCPs): a prior decides only what the evidence cannot (issue 45). The free
+Sim(3)'s tilt is held by the positions, about their own line and across it, to their scatter (never
+under their stated accuracy) over their spread (``tilt_hold``); gravity comes from the gimbal
+attitude (a measurement), else the aerial prior where the photos look down under the positions'
+fit, else the level prior (a terrestrial / facade capture: photos level and upright). Where the two
+agree, each tilt axis is taken from both weighted by their variances (``choose_gps_fit``: the free
+fit, the gravity-held fit of gtkit.sfm.gps_fit, or a combination, e.g. a single strip's roll about
+its line from gravity); where they disagree, surveyed positions against gravity are refused with
+both figures, positions without a stated accuracy (consumer GPS, drifting heights) yield to
+gravity, and the aerial prior yields to positions under which the photos look level. Every result
+is then checked for plausibility (gtkit.sfm.plausibility: the aerial checks only for aerial blocks
+or blocks nothing holds; rotations consistent with the gimbal attitude; scale) and refused with
+its cause when it fails.
+
+GCP clicks made on resized photos are found and scaled (gtkit.sfm.gcp_click_scale,
+``gcp_click_scale``); the click threshold follows the clicks' consistency and the photo size
+(``gcp_max_px`` = None). ``used`` in the report says what the fit used: gps, gcp or gps+gcp."""
 from __future__ import annotations
 
 import logging
@@ -70,9 +81,11 @@ def triangulate_gcps(rec: pycolmap.Reconstruction, gcps: list[GCP], max_px: floa
     return out
 
 
-def _click_scale(rec: pycolmap.Reconstruction, gcps: list[GCP], mode: str) -> tuple[list[GCP], dict | None, str]:
+def _click_scale(rec: pycolmap.Reconstruction, gcps: list[GCP], mode: str,
+                 in_fit: bool = True) -> tuple[list[GCP], dict | None, str]:
     """The GCPs with their clicks at the photos' scale (see gtkit.sfm.gcp_click_scale), a record of
-    what was found and done, and a note for a refusal where a scale was found but not applied."""
+    what was found and done, and a note for a refusal where a scale was found but not applied.
+    "off" with a scale the reprojection confirms, GCPs in the fit: refused (the clicks are known wrong)."""
     mode = str(mode).strip().lower()
     if mode not in ("auto", "off"):
         try:
@@ -90,9 +103,11 @@ def _click_scale(rec: pycolmap.Reconstruction, gcps: list[GCP], mode: str) -> tu
         log.warning("%s: clicks multiplied by %g (set [sfm.georegister] gcp_click_scale = \"off\" to keep them)",
                     line, cs.factor)
         return scaled(gcps, cs.factor), {**cs.record(), "applied": True}, ""
-    how = (f'set [sfm.georegister] gcp_click_scale = "{cs.factor:g}" to apply it' if mode == "off" or not cs.confirmed
-           else "")
-    return gcps, {**cs.record(), "applied": False}, f"{line}: {how}" if how else line
+    how = f'set [sfm.georegister] gcp_click_scale = "{cs.factor:g}" to apply it'
+    if cs.confirmed and in_fit:
+        # "off" and the reprojection confirms the scale: the clicks as given are known wrong
+        raise RegistrationError(f"{line}: {how} (gcp_click_scale = \"off\" keeps them as given)")
+    return gcps, {**cs.record(), "applied": False}, f"{line}: {how}"
 
 
 def check_gcp_clicks(gcps: list[GCP], block_names: list[str]) -> dict[str, list[str]]:
@@ -213,6 +228,25 @@ def median_view_z(rec: pycolmap.Reconstruction, R: np.ndarray | None = None) -> 
     return float(np.median(zs[:, 2]))
 
 
+def camera_plane(src: np.ndarray, up, level_up, min_ratio: float = 10.0) -> str | None:
+    """Where the SfM camera centres lie in a clear plane (its second spread over its third >=
+    ``min_ratio``) that the level prior holds level (< 20 deg) and the aerial prior tilts (> 45 deg):
+    a line saying so (a terrestrial capture at one height); else None."""
+    if up is None or level_up is None or up.source != "aerial prior" or len(src) < 4:
+        return None
+    P = np.asarray(src, float) - np.mean(src, axis=0)
+    w, V = np.linalg.eigh(P.T @ P)
+    if w[1] < min_ratio * max(w[0], 1e-18):
+        return None
+    n = V[:, 0]
+    a_aer = float(np.degrees(np.arccos(min(1.0, abs(n @ up.vector)))))
+    a_lev = float(np.degrees(np.arccos(min(1.0, abs(n @ level_up.vector)))))
+    if a_aer > 45.0 and a_lev < 20.0:
+        return (f"the cameras lie in a plane level by the level prior ({a_lev:.0f} deg) and {a_aer:.0f} deg from "
+                "level by the aerial prior: a terrestrial capture, the aerial prior does not apply")
+    return None
+
+
 AERIAL_VIEW_Z = -0.26    # photos looking more than 15 deg below the horizon: an aerial view
 CONSISTENT_CHI2 = 9.21   # 99 % of a chi-square with 2 degrees of freedom (two tilt axes)
 PRIOR_BIAS_DEG = 1.5     # a gravity estimate's systematic error (gimbal calibration, camera mount)
@@ -250,8 +284,10 @@ def choose_gps_fit(free: Sim3Fit | None, free_error: str | None, grav, up, src: 
                          "attitude nor look down)")
     if mode == "gravity":
         return GpsChoice("gravity", "tilt_from = gravity", up)
+    plane = camera_plane(np.asarray(src), up, level_up)
+    base = level_up if plane else up      # the prior that applies where the positions hold nothing
     if free is None:
-        return GpsChoice("gravity", f"a free Sim(3) failed ({free_error})", up)
+        return GpsChoice("gravity", (plane + "; " if plane else "") + f"a free Sim(3) failed ({free_error})", base)
     inl = free.inliers
     share = float(inl.mean())
     R = free.tgt_from_src.rotation.matrix()
@@ -259,11 +295,17 @@ def choose_gps_fit(free: Sim3Fit | None, free_error: str | None, grav, up, src: 
     hold = tilt_hold(world, np.asarray(tgt)[inl], stated_m)
     held = f"{hold.sigma_deg[1]:.3g} deg across their line, {hold.sigma_deg[0]:.3g} deg about it"
     if share < 0.5:
-        return GpsChoice("gravity", f"only {100 * share:.0f} % of the GPS positions agree with a free Sim(3)", up, hold)
+        return GpsChoice("gravity", (plane + "; " if plane else "") + f"only {100 * share:.0f} % of the GPS positions "
+                         "agree with a free Sim(3)", base, hold)
     vz = median_view_z(rec, R) if rec is not None else None
     aerial_view = vz is None or vz < AERIAL_VIEW_Z
     prior = up
     note = ""
+    if plane is not None and aerial_view:
+        # the cameras lie in a plane that the level prior holds level and the aerial prior tilts: a
+        # terrestrial capture at one height (a flight at one altitude is level by the aerial prior)
+        aerial_view = False
+        note = plane + "; "
     if up is not None and up.source == "aerial prior" and not aerial_view:
         if level_up is None:
             # no level prior either: the positions alone hold the tilt, or nothing does
@@ -275,7 +317,7 @@ def choose_gps_fit(free: Sim3Fit | None, free_error: str | None, grav, up, src: 
             return GpsChoice("free", f"the photos look level under the GPS positions' fit (z = {vz:+.2f}): "
                              f"the aerial prior does not apply; the positions hold the tilt to {held}", None, hold)
         prior = level_up
-        note = f"photos level under the positions (z = {vz:+.2f}): the aerial prior does not apply; "
+        note = note or f"photos level under the positions (z = {vz:+.2f}): the aerial prior does not apply; "
     if prior is None and level_up is not None and not aerial_view:
         prior = level_up
     if prior is None:
@@ -291,8 +333,11 @@ def choose_gps_fit(free: Sim3Fit | None, free_error: str | None, grav, up, src: 
         both = (f"the GPS positions tilt the block {total:.1f} deg from gravity ({prior.source}, held to "
                 f"{prior.sigma_deg:.2g} deg); the positions hold their tilt to {held}")
         if prior.source == "level prior":
-            return GpsChoice("free", note + f"the positions place it: the level prior disagrees by {total:.1f} deg "
-                             f"and they hold the tilt to {held}", None, hold, rec_)
+            if max(hold.sigma_deg) < 1.0:
+                return GpsChoice("free", note + f"the positions place it: the level prior disagrees by {total:.1f} deg "
+                                 f"and they hold the tilt to {held}", None, hold, rec_)
+            return GpsChoice("gravity", note + f"the positions hold the tilt only to {held} (and tilt the block "
+                             f"{total:.1f} deg from the level prior): the level prior holds it", prior, hold, rec_)
         if not stated_m:
             return GpsChoice("gravity", both + " but state no accuracy (consumer heights drift): gravity holds the tilt",
                              prior, hold, rec_)
@@ -386,7 +431,7 @@ def _georegister(rec, gps, gcps, settings, gps_accuracy, metas, notes: dict) -> 
                 adaptive.append(bool(acc))
     gcp_sfm, click_scale, click_scale_note, click_thr = {}, None, "", None
     if gcps:
-        gcps, click_scale, click_scale_note = _click_scale(rec, gcps, settings.gcp_click_scale)
+        gcps, click_scale, click_scale_note = _click_scale(rec, gcps, settings.gcp_click_scale, "gcp" in settings.use)
         notes["click_scale"] = click_scale_note
         cams_m = model_cameras(rec)
         click_thr = ({"max_px": float(settings.gcp_max_px), "from": "gcp_max_px"} if settings.gcp_max_px
@@ -466,6 +511,10 @@ def _georegister(rec, gps, gcps, settings, gps_accuracy, metas, notes: dict) -> 
                 fit_record["gravity_check"] = {"tilt_from": up.source, "up": up.record()}
         held_by_evidence = ch.choice in ("free", "combined") and ch.hold is not None and \
             float(ch.hold.sigma_deg.min()) < 1.0
+        if ch.hold is not None and not held_by_evidence:
+            notes["evidence"] = (f"the {len(names)} GPS positions hold it only to {float(ch.hold.sigma_deg.max()):.2g} deg"
+                                 + (", placed by the level prior" if ch.up is not None and ch.up.source == "level prior"
+                                    else ""))
     else:
         fit: Sim3Fit = robust_sim3(np.array(src), np.array(tgt), np.array(cap), what="georegistration points",
                                    adaptive=np.array(adaptive), floors=np.array(floor), groups=np.array(kinds))
@@ -490,7 +539,8 @@ def _georegister(rec, gps, gcps, settings, gps_accuracy, metas, notes: dict) -> 
     if gps_quality is None and (kinds == "gps").any():
         gps_quality = _gps_quality(fit, kinds, np.array(src), np.array(tgt), gps_accuracy, names)
     used = "+".join(k for k in ("gps", "gcp") if (fit.inliers & (kinds == k)).any()) or settings.use
-    plaus = (check_block(rec, metas, held_by=(_fitted_to(kinds, fit.inliers) if held_by_evidence else None))
+    plaus = (check_block(rec, metas, held_by=(_fitted_to(kinds, fit.inliers) if held_by_evidence else None),
+                         evidence=notes.get("evidence"))
              if settings.check_plausibility else None)
     report = {"used": used, "used_setting": settings.use, "gcp_click_scale": click_scale, "gcp_click_threshold": click_thr,
               "fitted_to": _fitted_to(kinds, fit.inliers), "fit": fit_record,

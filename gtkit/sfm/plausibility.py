@@ -70,11 +70,13 @@ def block_figures(rec: pycolmap.Reconstruction, metas: dict | None = None, max_p
 
 
 def check_block(rec: pycolmap.Reconstruction, metas: dict | None = None, *, held_by: str | None = None,
+                evidence: str | None = None,
                 min_share_above: float = 0.8, max_view_z: float = -0.1, max_attitude_deg: float = 30.0,
                 max_tilt_deg: float = 10.0, rel_alt_ratio: float = 3.0,
                 height_range_m: tuple[float, float] = (2.0, 3000.0)) -> dict:
     """The figures of :func:`block_figures`; raises RegistrationError naming the first failed check.
-    ``held_by``: what holds the block's tilt where positions or GCPs do ("8 GPS positions"), else None."""
+    ``held_by``: what holds the block's tilt where positions or GCPs do ("8 GPS positions"), else None;
+    ``evidence``: what the positions or GCPs say where they do not (named in a refusal)."""
     f = block_figures(rec, metas)
     level = f["median_view_z"] is not None and f["median_view_z"] > max_view_z
     f["capture"] = "level" if level else "aerial"
@@ -91,8 +93,8 @@ def check_block(rec: pycolmap.Reconstruction, metas: dict | None = None, *, held
         # level photos, nothing holding their tilt: that, not "below the ground", is the cause
         raise RegistrationError(
             f"implausible result: the photos look level (median viewing direction z = {f['median_view_z']:+.2f}) and "
-            "no positions or GCPs hold the block's tilt (aerial photos look down; a level capture needs surveyed "
-            "positions or GCPs)")
+            f"no positions or GCPs hold the block's tilt{f' ({evidence})' if evidence else ''} (aerial photos look "
+            "down; a level capture needs surveyed positions or GCPs)")
     if f["share_above_their_points"] is not None and f["share_above_their_points"] < min_share_above:
         raise RegistrationError(
             f"implausible result: the cameras sit below the ground they see in "
