@@ -278,8 +278,12 @@ def choose_gps_fit(free: Sim3Fit | None, free_error: str | None, grav, up, src: 
       prior of a block that looks down: refused with both figures; positions without a stated
       accuracy (consumer GPS: heights drift) against either: gravity; the aerial prior on photos
       that look level under a fit the positions hold: the prior does not apply, the positions place it;
-    - the free fit failed, or fewer than half of the positions agree with it: gravity."""
-    if mode == "gps" or (grav is None and level_up is None):
+    - the free fit failed, or fewer than half of the positions agree with it: gravity.
+    The SfM cameras themselves tell a terrestrial capture at one height (``camera_plane``: their
+    plane level by the level prior, tilted > 45 deg by the aerial prior): the level prior then
+    applies, so that positions too weak to hold the tilt never let the aerial prior lay a facade flat.
+    ``grav``: the gravity-held fit by ``up`` where one could be made (None: failed or not tried)."""
+    if mode == "gps" or (up is None and level_up is None):
         return GpsChoice("free", "tilt_from = gps" if mode == "gps" else "no gravity estimate (photos neither carry "
                          "attitude nor look down)")
     if mode == "gravity":
