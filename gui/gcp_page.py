@@ -152,6 +152,10 @@ class GcpPage(QWidget):
         lay.addWidget(left)
         lay.addWidget(right, 1)
 
+        # single-letter keys (N, P, G, A) are the main window's shortcuts: lists that search by typed
+        # letters must not take the keyboard focus from the photo
+        for wdg in (self.table, self.photo_list, self.import_button):
+            wdg.setFocusPolicy(Qt.FocusPolicy.NoFocus)
         self.import_button.clicked.connect(self.import_dialog)
         self.table.itemClicked.connect(lambda it, _c: self.select_gcp(it.data(0, ROLE)))
         self.photo_list.currentItemChanged.connect(
@@ -215,6 +219,8 @@ class GcpPage(QWidget):
         else:
             self.view.fit()
         self.refresh()
+        if self.isVisible():
+            self.view.setFocus()
         self.session_changed.emit()
         self.photo_shown.emit(self.gcp, photo)
 
@@ -295,8 +301,12 @@ class GcpPage(QWidget):
             self.next_gcp()
             return
         photos = self.ranked_photos(self.gcp)
-        i = photos.index(self.photo) if self.photo in photos else -1
-        todo = [n for n in photos[i + 1:] + photos[:i + 1] if self.store.click(self.gcp, n) is None]
+        sol = self.solution()
+        if not (sol and sol.for_gcp(self.gcp)):   # no prediction: on through the photos in their order
+            i = photos.index(self.photo) if self.photo in photos else -1
+            photos = photos[i + 1:] + photos[:i + 1]
+        # with a prediction (from the fit, or from this GCP's own first 2 clicks): the best photo left
+        todo = [n for n in photos if self.store.click(self.gcp, n) is None]
         if todo:
             self.open_photo(todo[0])
         else:

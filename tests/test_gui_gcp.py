@@ -62,9 +62,9 @@ class Truth:
         return c.project((p.R @ self.xyz[gcp] + p.t)[None])[0][0]
 
 
-def centre_errors(root, gcps) -> float:
+def centre_errors(root, gcps, model="model") -> float:
     """Median camera-centre error (m) vs truth of the reference block georegistered to ``gcps`` alone."""
-    rec = pycolmap.Reconstruction(str(root / "work/sfm_reference/model"))
+    rec = pycolmap.Reconstruction(str(root / "work/sfm_reference" / model))
     georegister(rec, {}, gcps, GeoregisterSettings(use="gcp", check_plausibility=False))
     truth = read_poses(root / "truth/poses.txt")
     e = [np.linalg.norm(im.projection_center() - truth[im.name].center) for im in rec.images.values() if im.has_pose]
@@ -177,11 +177,17 @@ def report(gcp, photo):
     def later():
         vp, tf = pg.view.viewport(), pg.view.viewportTransform()
         o = vp.mapToGlobal(vp.rect().topLeft())
+        t = pg.title.mapToGlobal(pg.title.rect().center())
         print("SHOWN " + json.dumps({"gcp": gcp, "photo": photo, "viewport": [o.x(), o.y(), vp.width(), vp.height()],
+              "title": [t.x(), t.y()],
               "m": [tf.m11(), tf.m22(), tf.dx(), tf.dy()], "clicks": len(pg.store)}), flush=True)
     QTimer.singleShot(200, later)
 pg.photo_shown.connect(report)
-QTimer.singleShot(300, lambda: w.tabs.setCurrentIndex(GCP_TAB))
+def start():
+    if w.tabs.currentIndex() == GCP_TAB and pg.photo:   # reopened on the GCPs tab (its session)
+        report(pg.gcp, pg.photo)
+    w.tabs.setCurrentIndex(GCP_TAB)
+QTimer.singleShot(300, start)
 app.exec()
 """
 
@@ -270,4 +276,73 @@ def test_gcp_session_on_xvfb_clicks_true_positions_and_georegisters(gcp_site, xs
     if out and shot is not None:
         shutil.copy(shot, out)
     print(f"GCP page on Xvfb: {len(clicked)} clicks in {session_s:.1f} s; block georegistered to them: camera "
+          f"centres {mine:.3f} m from truth (median), to the sample's clicks {sample:.3f} m")
+
+
+@pytest.mark.skipif(not os.environ.get("GTKIT_SLOW"), reason="slow (about 1 min): set GTKIT_SLOW=1")
+def test_gcp_session_on_xvfb_without_gps(tiny_sample, xserver, tmp_path):
+    """No GPS in the photos: the page has nothing to predict until 3 GCPs are clicked in 2+ photos,
+    so the scripted surveyor steps through the photos (a real N key) to those that show the GCP and
+    clicks it (true position + 0.5 px); after a GCP's 2nd click its own triangulation predicts it in
+    the rest (best photos first), and from the 4th GCP on the page opens the photos zoomed at the
+    predictions of the Sim(3). 8 photos a GCP, as many as the sample clicked. The block georegistered to these clicks alone vs
+    to the sample's own clicks (camera centres vs truth)."""
+    from gtkit.errors import GtkitError
+    from gtkit.sfm.blocks import run_reference
+
+    root = tmp_path / "site"
+    shutil.copytree(tiny_sample[0], root, ignore=shutil.ignore_patterns("work", "reports", "exports"))
+    apply_gcp_points_variant(root, "gcp-points-no-gps")
+    with pytest.raises(GtkitError, match="georegistration failed"):
+        run_reference(root)
+    truth = Truth(root)
+    per_gcp, n_gcp = 8, len(truth.xyz)
+    rng = np.random.default_rng(11)
+    app = subprocess.Popen([sys.executable, "-c", DRIVER, str(root), str(per_gcp)], env=xserver, cwd=str(ROOT),
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    watchdog = threading.Timer(150, app.kill)
+    watchdog.start()
+    clicked, keys, zoomed = {}, 0, []
+    try:
+        for line in app.stdout:
+            if not line.startswith("SHOWN "):
+                continue
+            s = json.loads(line[6:])
+            if not keys and not clicked:   # a first real click (on the photo's title) activates the window for keys
+                subprocess.run(["xdotool", "mousemove", str(s["title"][0]), str(s["title"][1]), "click", "1"],
+                               env=xserver, check=True, timeout=10)
+            if len(clicked) == per_gcp * n_gcp:
+                break
+            m11, m22, dx, dy = s["m"]
+            vx, vy, vw, vh = s["viewport"]
+            uv = truth.px(s["gcp"], s["photo"])
+            if uv is None or not truth.cams[s["photo"]].in_image(uv, 20) or (s["gcp"], s["photo"]) in clicked:
+                subprocess.run(["xdotool", "mousemove", str(vx + vw // 2), str(vy + vh // 2), "key", "n"], env=xserver,
+                               check=True, timeout=10)
+                keys += 1
+                continue
+            uv = uv + rng.normal(0, CLICK_SIGMA, 2)
+            sx, sy = int(round(vx + uv[0] * m11 + dx)), int(round(vy + uv[1] * m22 + dy))
+            subprocess.run(["xdotool", "mousemove", str(sx), str(sy), "click", "1"], env=xserver, check=True, timeout=10)
+            clicked[(s["gcp"], s["photo"])] = (uv, ((sx - vx - dx) / m11, (sy - vy - dy) / m22))
+            zoomed.append((s["gcp"], m11))
+        assert len(clicked) == per_gcp * n_gcp, f"only {len(clicked)} clicks: {app.stderr.read()[-1500:]}"
+    finally:
+        watchdog.cancel()
+        app.kill()
+        app.wait(10)
+    gcps = _gcps_of_file(root)
+    on_disk = {(g.name, c.image): (c.x, c.y) for g in gcps for c in g.clicks}
+    assert on_disk.keys() == clicked.keys()
+    assert all(np.allclose(on_disk[k], px, atol=0.02) for k, (uv, px) in clicked.items())
+    # the first GCPs were found by hand (the photo fitted in the view), the last one at its prediction
+    fit_zoom = min(z for g, z in zoomed if g == "gcp01")
+    assert min(z for g, z in zoomed if g == "gcp04") > 3 * fit_zoom
+    # one noise draw each: with 4 GCPs and no GPS the block's error varies 5x between draws (the
+    # sample's photos over 8 draws: 0.15-0.73 m, mean 0.33 m; the page's photo choice 0.12-0.44 m,
+    # mean 0.26 m), so "as well as" is judged with that spread (measured here: 0.40 vs 0.20 m)
+    mine = centre_errors(root, gcps, "unplaced_model")
+    sample = centre_errors(root, truth.sample, "unplaced_model")
+    assert mine < 2.5 * sample + 0.1 and mine < 0.8, (mine, sample)
+    print(f"GCP page on Xvfb, no GPS: {len(clicked)} clicks, {keys} N keys; block georegistered to them: camera "
           f"centres {mine:.3f} m from truth (median), to the sample's clicks {sample:.3f} m")
