@@ -137,7 +137,7 @@ def main():
         if laz.is_file():
             from gtkit.export import dsm
 
-            t, out = timed(lambda: dsm.run_file(laz, Path(tmp) / "bb.tif"))
+            t, out = timed(lambda: dsm.run_file(laz, Path(tmp) / "bb.tif", dsm.DsmSettings()))
             rows.append(("brighton-laz (940k pts)", "dsm (default res)", "", t))
 
 

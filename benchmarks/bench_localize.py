@@ -23,6 +23,7 @@ from gtkit.evaluate import localization as evaluation  # noqa: E402
 from gtkit.localize import database, localize  # noqa: E402
 from gtkit.localize.executors import ExecutorSettings  # noqa: E402
 from gtkit.project import Project  # noqa: E402
+from gtkit.stages import settings_for  # noqa: E402
 
 
 def peak_mib() -> float:
@@ -59,10 +60,11 @@ def main(argv=None) -> int:
     rows.append(("render-db: model load s", f"{rb['model_load_s']:.2f}"))
     rows.append(("memory peak after rendering (MiB)", f"{peak_mib():.0f}"))
     if not (proj.paths.stage(database.STAGE) / "stage.json").is_file():
-        database.run(proj, database.RenderDbSettings(), ExecutorSettings("serial"))
+        database.run(proj, settings_for("render_db", proj), ExecutorSettings("serial"),
+                     localize_settings=settings_for("localize", proj))
     rec = json.loads((proj.paths.stage(database.STAGE) / "stage.json").read_text())
     rows.append(("render-db stage: views kept / planned", f"{rec['summary']['n_kept']} / {rec['summary']['n_views']}"))
-    s = localize.LocalizeSettings()
+    s = settings_for("localize", proj)
     if a.queries:
         s = dataclasses.replace(s, query_subset=a.queries)
     t0 = time.perf_counter()

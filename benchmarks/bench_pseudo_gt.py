@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from gtkit.evaluate import gt_report as report  # noqa: E402
 from gtkit.project import Project  # noqa: E402
+from gtkit.stages import settings_for  # noqa: E402
 from gtkit.settings import resolve  # noqa: E402
 from gtkit.sfm import blocks, register  # noqa: E402
 from pipelines.pseudo_gt import main as pseudo_gt  # noqa: E402
@@ -65,7 +66,7 @@ def bench(root: Path, args) -> None:
     out = pseudo_gt(str(root), s, rep=report.ReportSettings(args.point_cloud), force=args.force)
     if not tp.is_file():   # the pipeline registers only where tie points were clicked
         t1 = time.time()
-        out["sequences"] = register.run(root, force=args.force)["sequences"]
+        out["sequences"] = register.run(root, settings_for("register", Project.load(root)), force=args.force)["sequences"]
         t2 = time.time()
         summary = report.run(root, report.ReportSettings(args.point_cloud))
         out["seconds"].update({"register": round(t2 - t1, 1), "report": round(time.time() - t2, 1)})

@@ -35,6 +35,7 @@ from gtkit.export import dsm as dsm_stage  # noqa: E402
 from gtkit.io.poses import read_poses, write_poses  # noqa: E402
 from gtkit.pose import Pose  # noqa: E402
 from gtkit.project import Project  # noqa: E402
+from gtkit.stages import settings_for  # noqa: E402
 from gtkit.track import calibrate  # noqa: E402
 from gtkit.track.tracker import TrackSettings, run as track  # noqa: E402
 
@@ -60,10 +61,10 @@ def main():
     P = proj.paths
     t = time.perf_counter()
     if not P.dsm.is_file():
-        dsm_stage.run(proj)
+        dsm_stage.run(proj, settings_for("export_dsm", proj))
     print(f"dsm: {time.perf_counter() - t:.1f} s")
     t = time.perf_counter()
-    rig = calibrate.run(proj)
+    rig = calibrate.run(proj, settings_for("track", proj)["rig"])
     print(f"rig: {rig.info['n_pairs']} pairs, {time.perf_counter() - t:.1f} s")
     det_box = P.root / "detections_sim_box.csv"
     det_pt = P.root / "detections_sim_point.csv"

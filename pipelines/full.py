@@ -1,44 +1,44 @@
-"""gtkit's main job, top to bottom, on one project (the README's first command):
+"""gtkit's main job on one project (the README's first command): ``gtkit run``'s stages, the same
+table (:mod:`gtkit.stages`) with the same settings, plus the steps that need a sample's truth.
 
     sample site (created if DIR holds no project)            gtkit sample create DIR --preset small
-    1. pseudo-GT: SfM of both blocks, tie points, joint BA   pipelines/pseudo_gt.py
-    2. surveyor exports: DSM, orthophoto, mesh, coordinates  gtkit export dsm|ortho|mesh|coords DIR
-    3. review overlays of the pseudo-GT poses                gtkit overlay DIR
-    4. localization: render database, localize, evaluate    pipelines/localize.py
-    5. target tracking on the localized poses                pipelines/track.py
+    simulated target detections (sample sites: truth)        gtkit.evaluate.tracking.simulate_detections
+    every stage, in order, as `gtkit run DIR` runs them      gtkit.run_site (reports/run.json)
+    evaluation against truth (sample sites)                  gtkit evaluate / gtkit track evaluate
     summary of every measured figure                         reports/summary.json
 
-Every stage resumes: a second run with the same settings only re-reads finished outputs.
+So a user's ``project.toml`` ([export_dsm], [overlay], [localize], [track] ...) counts here exactly as
+in ``gtkit run`` and in each stage's command. Every stage resumes: a second run with the same
+settings only re-reads finished outputs.
 
     .venv/bin/python -m pipelines.full DIR [--preset small] [--seed 0]
 """
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
+import time
 from pathlib import Path
 
 from gtkit.errors import GtkitError
 from gtkit.io.atomic import write_json
 from gtkit.project import PROJECT_FILE, Paths, relative_paths
 
-from ._timing import timed
-
 log = logging.getLogger("full")
 
 
-def _timed(times: dict, name: str, fn, *a, **kw):
-    return timed(times, name, fn, *a, log=log, **kw)
+def _load(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
 
 
-def main(root: str | Path, preset: str = "small", seed: int = 0) -> dict:
-    from gtkit.export import coordinates, dsm, mesh_export, ortho
-    from gtkit.render.overlay import OverlaySettings, write_overlays
-
-    from . import localize as localize_pipeline
-    from . import pseudo_gt
-    from . import track as track_pipeline
+def main(root: str | Path, preset: str = "small", seed: int = 0, progress=None, starting=None) -> dict:
+    """The main job (see the module doc); returns the summary (also ``reports/summary.json``)."""
+    from gtkit import run_site
 
     root = Path(root)
     paths = Paths(root)
@@ -47,31 +47,52 @@ def main(root: str | Path, preset: str = "small", seed: int = 0) -> dict:
         from gtkit.synth.generate import create_sample
         from gtkit.synth.settings import load_preset
 
-        _timed(times, "sample", create_sample, root, load_preset(preset, seed=seed))
-    summary: dict = {"project": str(root)}
-
-    summary["pseudo_gt"] = _timed(times, "pseudo_gt", pseudo_gt.main, str(root))
-    _timed(times, "export_dsm", dsm.run, root)
-    _timed(times, "export_ortho", ortho.run, root)
-    _timed(times, "export_mesh", mesh_export.run, root)
-    _timed(times, "export_coords", coordinates.run, root)
-    ov = _timed(times, "overlays", write_overlays, root, None, None, OverlaySettings(modes=("blend", "edges")))
-    summary["overlays"] = {k: ov.get(k) for k in ("median_misalignment_px", "median_edge_distance_px")}
-
-    reports = _timed(times, "localize", localize_pipeline.run, root)
-    summary["localization"] = reports.get("default")
-
+        t = time.time()
+        create_sample(root, load_preset(preset, seed=seed))
+        times["sample"] = round(time.time() - t, 1)
     if paths.truth.is_dir() and not paths.detections.is_file():
         # sample sites only: a simulated detector marks the targets in the zoom photos
         from gtkit.evaluate.tracking import simulate_detections
 
         simulate_detections(paths, paths.detections, sigma_px=1.0, mode="box")
-    loc_poses = paths.stage("localize") / "poses.txt"
-    summary["tracking"] = _timed(times, "track", track_pipeline.main, str(root),
-                                 poses=str(loc_poses) if loc_poses.is_file() else "")
+    run = run_site.run(root, progress=progress, starting=starting)
+    times.update({k: v for k, v in (run.get("seconds") or {}).items()})
+    summary: dict = {"project": str(root), "run": run_site.SUMMARY_FILE}
+    gt = _load(paths.reports / "gt_report.json")     # the report stage: figures, and errors where truth is
+    reg = _load(paths.stage("register") / "registration.json")
+    ref = _load(paths.stage("sfm_reference") / "block.json")
+    summary["pseudo_gt"] = {"reference": {k: ref.get(k) for k in ("n_registered", "n_images", "mean_reproj_px")},
+                            "sequences": reg.get("sequences"),
+                            **{k: gt.get(k) for k in ("n_registered", "n_images", "median_reproj_px",
+                                                      "median_tiepoint_reproj_px", "median_pos_err_m",
+                                                      "median_rot_err_deg", "point_cloud_comparison")}}
+    ov = _load(paths.reports / "overlays" / "alignment.json")
+    summary["overlays"] = {k: ov.get(k) for k in ("median_misalignment_px", "median_edge_distance_px")}
+    if paths.truth.is_dir():
+        summary.update(_evaluate(paths))
     summary["seconds"] = times
     write_json(paths.reports / "summary.json", relative_paths(summary, root))  # portable: the project is "."
     return summary
+
+
+def _evaluate(paths: Paths) -> dict:
+    """Sample sites: localization and tracking against truth (the pseudo-GT's is in the GT report)."""
+    from gtkit.evaluate import localization
+    from gtkit.evaluate.tracking import evaluate_tracking
+
+    out: dict = {}
+    if (paths.stage("localize") / "status.json").is_file():
+        out["localization"] = localization.evaluate(paths.root)
+    if paths.tracks.is_file():
+        from gtkit.track.rig import Rig
+
+        rig = Rig.load(paths.rig).info if paths.rig.is_file() else {}
+        rep = evaluate_tracking(paths)
+        out["tracking"] = {"rig": {k: rig.get(k) for k in ("n_pairs", "median_px")},
+                           "track": _load(paths.stage("track") / "summary.json"),
+                           "evaluation": {k: rep[k] for k in ("n_targets", "n_failed", "median_err_h_m",
+                                                              "median_err_3d_m")}}
+    return out
 
 
 def _print_summary(s: dict) -> None:
@@ -84,7 +105,7 @@ def _print_summary(s: dict) -> None:
     print(f"pseudo-GT     {pg.get('n_registered')}/{pg.get('n_images')} query images registered, "
           f"median error {f(pg.get('median_pos_err_m'))} m / {f(pg.get('median_rot_err_deg'))} deg vs truth, "
           f"reprojection {f(pg.get('median_reproj_px'), '{:.2f}')} px (tie points {f(pg.get('median_tiepoint_reproj_px'), '{:.2f}')} px)")
-    print(f"overlays      median misalignment {f(s['overlays'].get('median_misalignment_px'), '{:.2f}')} px")
+    print(f"overlays      median misalignment {f((s.get('overlays') or {}).get('median_misalignment_px'), '{:.2f}')} px")
     if loc:
         print(f"localization  recall (1m,1°)/(3m,3°)/(5m,5°) = {100 * loc['recall_1m1deg']:.1f} / "
               f"{100 * loc['recall_3m3deg']:.1f} / {100 * loc['recall_5m5deg']:.1f} %, "
@@ -109,9 +130,17 @@ if __name__ == "__main__":
                     help="COLMAP, Open3D and Qt output on the terminal (else in work/<stage>/log.txt)")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+
+    def starting(name):
+        print(f"[{name}] ...", flush=True)
+
+    def progress(r):
+        print(f"[{r.name}] " + (f"skipped: {r.why}" if r.status == "skipped" else f"{r.status} in {r.seconds} s"),
+              flush=True)
+
     try:
         with quiet_terminal(a.verbose) as stage_log:
-            summary = main(a.project, a.preset, a.seed)
+            summary = main(a.project, a.preset, a.seed, progress, starting)
         _print_summary(summary)
     except GtkitError as e:
         print(f"gtkit: error: {e}" + (f" (full log: {stage_log.log_path})" if stage_log.log_path else ""),

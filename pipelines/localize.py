@@ -4,10 +4,11 @@
     python -m pipelines.localize DIR --ablations     # + every ablation (the paper's tables), one table
     python -m pipelines.localize DIR --ablations no-gravity top1
 
-An existing database (work/render_db/) is used as it is; without one it is rendered with the
-project's [render_db] settings, by default a grid that follows the queries' heights, gimbal pitches
-and field of view (gtkit.localize.database.resolve_grid; without them the paper's grid plus a
-70-degree off-nadir level; ablation 'render-paper' = the paper's pitches only). Each ablation writes work/localize-<name>/ and reports/localization-<name>.json; finished runs
+The database is rendered with the project's [render_db] settings (gtkit.stages.settings_for, as
+`gtkit render-db` and `gtkit run`; it resumes when settings and inputs match), by default a grid that
+follows the queries' heights, gimbal pitches and field of view (gtkit.localize.database.resolve_grid;
+without them the paper's grid plus a 70-degree off-nadir level; ablation 'render-paper' = the paper's
+pitches only). Each ablation writes work/localize-<name>/ and reports/localization-<name>.json; finished runs
 are reused when their settings match, so re-running only computes what changed.
 """
 from __future__ import annotations
@@ -23,20 +24,21 @@ from gtkit.localize.executors import ExecutorSettings
 COLUMNS = ("recall_1m1deg", "recall_3m3deg", "recall_5m5deg", "retrieval_R1", "retrieval_R3", "retrieval_P3")
 
 
-def run(root, ablations=("default",), db_settings: database.RenderDbSettings | None = None,
-        executor: ExecutorSettings = ExecutorSettings(), base: localize.LocalizeSettings = localize.LocalizeSettings()
-        ) -> dict[str, dict]:
-    from gtkit.project import Paths, Project
-    from gtkit.settings import resolve
+def run(root, ablations=("default",), executor: ExecutorSettings = ExecutorSettings()) -> dict[str, dict]:
+    """The database, then each ablation's localization, then its evaluation against truth; settings
+    from the stage table (project.toml [render_db] / [localize] over the defaults; an ablation's
+    changes over the defaults), each stage resuming when its settings and inputs match."""
+    from gtkit.project import Project
+    from gtkit.stages import settings_for
 
-    if db_settings is not None or not (Paths(root).stage(database.STAGE) / "stage.json").is_file():
-        # 1. offline database: given settings, else project.toml [render_db] < defaults (a grid that
-        # follows the queries, database.resolve_grid)
-        database.run(root, db_settings or resolve(database.RenderDbSettings(), "render_db", Project.load(root)), executor)
+    project = Project.load(root)
+    loc = settings_for("localize", project)
+    database.run(project, settings_for("render_db", project), executor, localize_settings=loc)   # 1. offline
     reports = {}
     for name in ablations:
-        localize.run(root, localize.settings_for(name, base), ablation=name, executor=executor)  # 2. online
-        reports[name] = evaluation.evaluate(root, ablation=name)            # 3. against truth
+        s = settings_for("localize", project, base=localize.settings_for(name))
+        localize.run(project, s, ablation=name, executor=executor)          # 2. online
+        reports[name] = evaluation.evaluate(project, ablation=name)         # 3. against truth
     return reports
 
 

@@ -21,7 +21,7 @@ import sys
 
 from gtkit.errors import GtkitError
 from gtkit.project import Project
-from gtkit.settings import resolve
+from gtkit.stages import settings_for
 
 from ._timing import timed
 from gtkit.evaluate import gt_report as report  # the report plus checks against truth / a point cloud
@@ -32,8 +32,11 @@ log = logging.getLogger("pseudo_gt")
 
 def main(root: str, sfm: blocks.SfmSettings | None = None, reg: register.RegisterSettings | None = None,
          rep: report.ReportSettings | None = None, force: bool = False) -> dict:
+    """Settings given here (a benchmark's) replace the stage table's (project.toml over defaults)."""
     project = Project.load(root)
-    sfm = sfm or resolve(blocks.SfmSettings(), "sfm", project)
+    sfm = sfm or settings_for("sfm_reference", project)
+    reg = reg or settings_for("register", project)
+    rep = rep or settings_for("report", project)
     times = {}
 
     def stage(name, fn, *a, **kw):
@@ -62,8 +65,10 @@ if __name__ == "__main__":
     ap.add_argument("--force", action="store_true")
     a = ap.parse_args()
     try:
-        s = resolve(blocks.SfmSettings(), "sfm", Project.load(a.project), {"georegister.gps_inlier_m": a.gps_inlier_m})
-        print(json.dumps(main(a.project, s, rep=report.ReportSettings(a.point_cloud), force=a.force), indent=2,
+        proj = Project.load(a.project)
+        s = settings_for("sfm_reference", proj, {"georegister.gps_inlier_m": a.gps_inlier_m})
+        print(json.dumps(main(a.project, s, rep=settings_for("report", proj, {"point_cloud": a.point_cloud}),
+                              force=a.force), indent=2,
                          default=str))
     except GtkitError as e:
         print(f"error: {e}", file=sys.stderr)

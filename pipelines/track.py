@@ -19,15 +19,17 @@ from gtkit.errors import GtkitError
 from gtkit.export import dsm as dsm_stage
 from gtkit.project import Project
 from gtkit.track import calibrate
-from gtkit.track.tracker import TrackSettings, run as track
+from gtkit.stages import settings_for
+from gtkit.track.tracker import run as track
 
 
 def main(root: str, poses: str = "", detections: str = "", evaluate: bool = True) -> dict:
     project = Project.load(root)
     if not project.paths.dsm.is_file():
-        dsm_stage.run(project)                                  # exports/dsm.tif from the reference model
-    rig = calibrate.run(project)                                # work/rig/rig.json
-    summary = track(project, TrackSettings(poses=poses, detections=detections))  # exports/tracks.csv/.geojson
+        dsm_stage.run(project, settings_for("export_dsm", project))   # exports/dsm.tif from the reference model
+    s = settings_for("track", project, {"track.poses": poses or None, "track.detections": detections or None})
+    rig = calibrate.run(project, s["rig"])                      # work/rig/rig.json
+    summary = track(project, s["track"])                        # exports/tracks.csv/.geojson
     out = {"rig": {k: rig.info[k] for k in ("n_pairs", "median_px")}, "track": summary}
     if evaluate and project.paths.truth.is_dir():
         from gtkit.evaluate.tracking import evaluate_tracking

@@ -74,3 +74,12 @@ def finished_demo(tmp_path_factory):
     w.save_session()
     w.close()
     return root
+
+
+def stage_settings(stage: str, project, cli: dict | None = None):
+    """A stage's settings as every entry point resolves them (gtkit.stages.settings_for: flags >
+    project.toml > defaults); ``project`` a Project or its folder."""
+    from gtkit.project import Project
+    from gtkit.stages import settings_for
+
+    return settings_for(stage, project if isinstance(project, Project) else Project.load(project), cli)

@@ -305,18 +305,18 @@ def test_georeference_errors_name_the_file(tmp_path):
 
     p = make_project(tmp_path / "nosidecar", sidecar=False)
     with pytest.raises(GtkitError, match=r"reference\.obj: mesh has no georeference"):
-        dsm.run(p)
+        dsm.run(p, dsm.DsmSettings())
     q = make_project(tmp_path / "wrongcrs")
     write_offset_sidecar(q.paths.model / "reference.obj", "EPSG:32633", FILE_OFFSET)
     with pytest.raises(GtkitError, match=r"reference\.obj: mesh CRS EPSG:32633 does not match"):
-        dsm.run(q)
+        dsm.run(q, dsm.DsmSettings())
     with pytest.raises(GtkitError, match="point cloud has no georeference"):
         import laspy
 
         las = laspy.LasData(laspy.LasHeader(point_format=3, version="1.2"))
         las.x, las.y, las.z = np.array([1.0, 2.0]), np.array([1.0, 2.0]), np.array([0.0, 0.0])
         las.write(str(tmp_path / "nocrs.las"))
-        dsm.run_file(tmp_path / "nocrs.las", tmp_path / "x.tif")
+        dsm.run_file(tmp_path / "nocrs.las", tmp_path / "x.tif", dsm.DsmSettings())
 
 
 def test_hole_filling_closes_holes_but_does_not_grow_the_border():

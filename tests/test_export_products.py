@@ -156,4 +156,4 @@ def test_cli_export_mesh_and_bad_inputs(project, tmp_path, capsys):
         from gtkit.export import dsm
 
         (tmp_path / "nocloud.xyz").write_text("1 2 3\n")
-        dsm.run(project, input=tmp_path / "nocloud.xyz", out=tmp_path / "x.tif")
+        dsm.run(project, dsm.DsmSettings(), input=tmp_path / "nocloud.xyz", out=tmp_path / "x.tif")

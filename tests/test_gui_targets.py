@@ -22,6 +22,7 @@ from PySide6.QtWidgets import QApplication  # noqa: E402
 
 from gtkit.conventions import pixel_to_index  # noqa: E402
 from gtkit.track.targets import read_csv, read_detections  # noqa: E402
+from conftest import stage_settings
 
 IMG = "queries/seq1/0001_Z.jpg"
 
@@ -205,7 +206,7 @@ def test_gui_clicks_at_true_target_pixels_track_to_centimetres(qtbot, site):
     from gtkit.track import calibrate
 
     P = Project.load(site).paths
-    calibrate.run(Project.load(site))
+    calibrate.run(Project.load(site), stage_settings("track", site)["rig"])
     assert main(["export", "dsm", str(site)]) == 0
     truth_csv = site / "truth_pixels.csv"
     n = simulate_detections(P, truth_csv, sigma_px=0.0, mode="point")  # visible targets, exact pixels

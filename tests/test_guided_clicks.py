@@ -20,6 +20,7 @@ from gtkit.io.tiepoints import Observation, TiePoint, read_tiepoints, write_tiep
 from gtkit.settings import resolve
 from gtkit.sfm import guided_clicks as gc
 from gtkit.sfm import register
+from conftest import stage_settings
 
 from test_register import make_site  # the synthetic site, shared
 
@@ -50,7 +51,7 @@ def _click_at_centre(name: str, truth: dict, refs: dict) -> gc.Candidate:
 
 def test_guidance_puts_a_click_in_the_least_held_photo_first_and_the_registration_confirms_it(tmp_path):
     proj, truth, _ = make_site(tmp_path / "site", seed=3, n_ties=5)   # ties clicked around the first photos only
-    register.run(proj)
+    register.run(proj, stage_settings("register", proj))
     out = proj.paths.stage("register")
     rec = pycolmap.Reconstruction(out / "model")
     st = gc.load_states(out / gc.COVARIANCE_FILE, rec)["seq1"]
@@ -69,7 +70,7 @@ def test_guidance_puts_a_click_in_the_least_held_photo_first_and_the_registratio
     for n, c in cands.items():
         write_tiepoints(proj.paths.tiepoints, ties + [TiePoint("extra", [Observation(n, *c.xy)] +
                                                                 [Observation(r, *xy) for r, xy in c.reference])])
-        register.run(proj, force=True)
+        register.run(proj, stage_settings("register", proj), force=True)
         measured[n] = before - _sequence_sigma(proj)
     assert measured[worst] > 1.5 * measured[best] > 0, measured
     for n in cands:   # first order: the predicted drop is the drop the BA finds
@@ -90,7 +91,7 @@ def test_the_first_order_update_is_the_information_form_inverse():
 
 def test_the_gt_report_says_how_many_clicks_bring_each_sequence_to_its_target(tmp_path):
     proj, truth, _ = make_site(tmp_path / "site", seed=4, n_ties=5)
-    register.run(proj)
+    register.run(proj, stage_settings("register", proj))
     now = _sequence_sigma(proj)
     s = resolve(register.RegisterSettings(), "register", proj, {"guidance.target_m": round(0.8 * now, 4)})
     register.run(proj, s, force=True)
@@ -100,7 +101,7 @@ def test_the_gt_report_says_how_many_clicks_bring_each_sequence_to_its_target(tm
     assert all(a["sigma_after_m"] > b["sigma_after_m"] for a, b in zip(g["suggestions"], g["suggestions"][1:]))
     for sug in g["suggestions"]:
         assert sug["photo"] in truth and len(sug["reference"]) == 2 and sug["box"][0] < sug["x"] < sug["box"][2]
-    report.run(proj)
+    report.run(proj, stage_settings("report", proj))
     md = (proj.paths.reports / "gt_report.md").read_text()
     m = re.search(r"seq1: (\d+) more clicks? in photos (\S.*) expected to bring sigma from ([0-9.]+) to ([0-9.]+) m", md)
     assert m, md
@@ -149,12 +150,12 @@ def test_the_systematic_swing_is_added_only_where_the_ties_were_found_biased(tmp
     the BA's (small seeds 13-15: BA sigma 0.023 / 0.025 / 0.013 m a camera axis against RMS errors of
     0.025 / 0.026 / 0.015 m); ``systematic_swing_where = "all"`` restores the swing everywhere."""
     proj, truth, _ = make_site(tmp_path / "site", seed=1)
-    reg = register.run(proj)
+    reg = register.run(proj, stage_settings("register", proj))
     assert all(v["sigma_pos_m"] == v["sigma_pos_ba_m"] for v in reg["images"].values())
     s = resolve(register.RegisterSettings(), "register", proj, {"systematic_swing_where": "all"})
     reg = register.run(proj, s, force=True)
     assert all(v["sigma_pos_m"] > v["sigma_pos_ba_m"] for v in reg["images"].values())
-    rep = report.run(proj)
+    rep = report.run(proj, stage_settings("report", proj))
     assert 0.0 <= rep["share_within_2sigma_ellipsoid"] <= 1.0 and rep["share_within_2sigma"] >= rep["share_within_2sigma_ellipsoid"] - 0.2
 
 

@@ -197,7 +197,7 @@ def test_localize_small_sample_queries_with_xfeat(small_sample, tmp_path):
     # the paper's layout (cameras on the grid points, 60 deg), as this test was measured with
     database.run(root, database.RenderDbSettings(heights=(150.0,), intervals=(75.0,), paper_pitches=(0.0, 45.0),
                                                  hfov_deg=60.0, anchor="camera"),
-                 ExecutorSettings("serial"))
+                 ExecutorSettings("serial"), localize_settings=localize.LocalizeSettings())
     s = localize.settings_for("xfeat", localize.LocalizeSettings(query_subset="queries/seq1/000[123]_W.jpg"))
     out = localize.run(root, s, ablation="xfeat", executor=ExecutorSettings("serial"))
     truth = read_poses(root / "truth" / "poses.txt")

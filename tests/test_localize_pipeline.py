@@ -16,7 +16,6 @@ from gtkit.localize import database, feature_store, localize
 from gtkit.localize.executors import ExecutorSettings, make_executor, run_map
 from test_localize_scene import build_site, default_queries
 
-DB_ARGS = ["--heights", "120", "--intervals", "100", "--pitches", "0,45", "--yaw-step", "90", "--size", "480x360", "--hfov", "60"]
 WATER = "queries/seq2/0001_W.jpg"
 OFF60 = "queries/seq2/0002_W.jpg"
 
@@ -25,7 +24,14 @@ OFF60 = "queries/seq2/0002_W.jpg"
 def site(tmp_path_factory):
     root = tmp_path_factory.mktemp("loc") / "site"
     build_site(root, default_queries())
-    assert main(["render-db", str(root), *DB_ARGS, "--executor", "serial"]) == 0
+    # the test grid in project.toml, as a user sets it, so that every entry point renders the same one
+    from gtkit.project import Project
+
+    proj = Project.load(root)
+    proj.config["render_db"] = {"heights": [120.0], "intervals": [100.0], "paper_pitches": [0.0, 45.0], "yaw_step": 90.0,
+                                "width": 480, "height": 360, "hfov_deg": 60.0}
+    proj.save()
+    assert main(["render-db", str(root), "--executor", "serial"]) == 0
     return root
 
 
@@ -52,7 +58,7 @@ def test_render_db_depth_is_metric_and_resume_is_per_view(site):
     for n in lost:
         (out / "depth" / f"{n}.npz").unlink()
     (out / "stage.json").unlink()
-    database.run(site, _db_settings(), ExecutorSettings("serial"))
+    database.run(site, _db_settings(), ExecutorSettings("serial"), localize_settings=localize.LocalizeSettings())
     rec = json.loads((out / "stage.json").read_text())
     assert rec["summary"]["n_rendered"] == 3
     for n in lost:
@@ -70,11 +76,11 @@ def test_changing_the_pitch_levels_keeps_the_views_and_features_on_disk(site, tm
     s0 = _db_settings()
     key0 = localize._db_cache(Project.load(copy), localize.LocalizeSettings())
     nadir = replace(s0, paper_pitches=(0.0,), min_valid_fraction=0.6)
-    database.run(copy, nadir, ExecutorSettings("serial"))
+    database.run(copy, nadir, ExecutorSettings("serial"), localize_settings=localize.LocalizeSettings())
     rec = json.loads((out / "stage.json").read_text())["summary"]
     assert rec["n_rendered"] == 0 and rec["n_views"] == 5 * 4 * 4
     assert {v["paper_pitch"] for v in json.loads((out / "views.json").read_text())["views"]} == {0.0}
-    database.run(copy, s0, ExecutorSettings("serial"))            # back: the 45 deg views are still there
+    database.run(copy, s0, ExecutorSettings("serial"), localize_settings=localize.LocalizeSettings())            # back: the 45 deg views are still there
     rec = json.loads((out / "stage.json").read_text())["summary"]
     assert rec["n_rendered"] == 0 and rec["n_views"] == 5 * 4 * 8
     assert localize._db_cache(Project.load(copy), localize.LocalizeSettings()) == key0
@@ -159,7 +165,7 @@ def test_database_views_and_features_only_for_the_views_the_queries_can_reach(si
     rec_p = json.loads((out_p / "status.json").read_text())
     assert rec_p["database_views_rendered_for_this_run"] == 0
     # every view rendered, then features for the reachable ones only, then for all
-    database.run(copy, replace(_db_settings(), views="all"), serial)
+    database.run(copy, replace(_db_settings(), views="all"), serial, localize_settings=None)
     db = database.load_database(p)
     assert len(db.views) > len(part.views) and not database.planned_not_rendered(p)
     out_r = localize.run(copy, s, ablation="reachable", executor=serial)

@@ -20,6 +20,7 @@ from gtkit.project import Project
 from gtkit.evaluate import gt_report as report  # the report with its checks (gtkit report)
 from gtkit.sfm import register
 from gtkit.sfm.geometry import RegistrationError, robust_sim3, triangulate_clicks, triangulate_many
+from conftest import stage_settings
 
 CLICK_NOISE = 0.5
 REF_CAM = Camera.pinhole(1600, 1200, 1400.0)
@@ -135,7 +136,7 @@ def _mk(d):
 
 def test_registration_meets_targets(tmp_path):
     proj, truth, _ = make_site(tmp_path, seed=1)
-    res = register.run(proj)
+    res = register.run(proj, stage_settings("register", proj))
     assert res["n_registered"] == len(truth) == res["n_images"]
     est = read_poses(proj.paths.stage("register") / "poses.txt")
     m = medians(pose_errors(est, truth))
@@ -151,7 +152,7 @@ def test_one_query_click_per_tiepoint(tmp_path):
     """The sample's click pattern: each tie point in one query photo and 1-3 reference photos,
     so block positions come from the blocks' depth; 20 % gross mistakes."""
     proj, truth, bad = make_site(tmp_path, seed=5, mistakes=0.2, n_ties=40, one_query_click=True)
-    res = register.run(proj)
+    res = register.run(proj, stage_settings("register", proj))
     assert res["n_registered"] == 8
     est = read_poses(proj.paths.stage("register") / "poses.txt")
     m = medians(pose_errors(est, truth))
@@ -168,7 +169,7 @@ def test_one_query_click_per_tiepoint(tmp_path):
 def test_a_photo_its_sequence_left_out_is_resected_from_its_clicks(tmp_path):
     lonely = "queries/seq1/0003_W.jpg"
     proj, truth, _ = make_site(tmp_path, seed=2, n_ties=96, one_query_click=True, left_out=(lonely,))
-    res = register.run(proj)
+    res = register.run(proj, stage_settings("register", proj))
     assert res["n_registered"] == 8 == res["n_images"]
     rec = res["images"][lonely]["resected"]
     assert rec["resected"] and rec["n_inliers"] >= 6 and "no verified matches" in rec["sfm_reason"]
@@ -184,8 +185,8 @@ def test_report_reads_truth_and_review(tmp_path):
     proj, truth, _ = make_site(tmp_path, seed=6, seqs=("seq1", "seq2"), n_ties=12)
     names = sorted(truth)
     (proj.paths.review).write_text(json.dumps({names[0]: "accept", names[1]: "reject"}))
-    reg = register.run(proj)
-    rep = report.run(proj)
+    reg = register.run(proj, stage_settings("register", proj))
+    rep = report.run(proj, stage_settings("report", proj))
     saved = json.loads((proj.paths.reports / "gt_report.json").read_text())
     for k in ("median_reproj_px", "median_tiepoint_reproj_px", "n_registered", "n_images", "median_pos_err_m",
               "median_rot_err_deg"):
@@ -202,7 +203,7 @@ def test_report_reads_truth_and_review(tmp_path):
 def test_gross_click_mistakes_are_listed(tmp_path):
     proj, truth, bad = make_site(tmp_path, seed=2, mistakes=0.2, n_ties=20)
     assert len(bad) >= 2
-    res = register.run(proj)
+    res = register.run(proj, stage_settings("register", proj))
     est = read_poses(proj.paths.stage("register") / "poses.txt")
     m = medians(pose_errors(est, truth))
     sig = np.median([res["images"][n]["sigma_pos_ba_m"] for n in est])
@@ -218,7 +219,7 @@ def test_too_few_and_collinear_tiepoints_fail_per_sequence(tmp_path):
     tps = read_tiepoints(proj.paths.tiepoints)
     seq2 = [t for t in tps if t.id.startswith("seq2")]
     write_tiepoints(proj.paths.tiepoints, [t for t in tps if t.id.startswith("seq1")] + seq2[:2])
-    res = register.run(proj)
+    res = register.run(proj, stage_settings("register", proj))
     assert res["sequences"]["seq2"]["status"] == "error"
     assert "only 2 usable tie points" in res["sequences"]["seq2"]["error"]
     assert res["sequences"]["seq1"]["status"] == "registered"

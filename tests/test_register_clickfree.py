@@ -18,6 +18,7 @@ from gtkit.project import Project
 from gtkit.sfm import register
 from gtkit.sfm.blocks import run_queries, run_reference
 from gtkit.synth.variants import strip_metadata
+from conftest import stage_settings
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +35,7 @@ def no_clicks(tiny_sample, tmp_path_factory):
 def test_register_without_tiepoints_places_every_sequence(no_clicks, tmp_path):
     root = tmp_path / "site"
     shutil.copytree(no_clicks, root)
-    res = register.run(root)
+    res = register.run(root, stage_settings("register", root))
     seqs = res["sequences"]
     assert seqs and all(s["status"] == "registered" and s["registered_by"] == "automatic matches"
                         for s in seqs.values()), seqs
@@ -56,7 +57,7 @@ def test_register_without_tiepoints_places_every_sequence(no_clicks, tmp_path):
     # photos 0.36-1.29 m and 0.15-0.47 deg. The bounds sit above that spread.
     assert np.median(pos) < 0.40 and pos.max() < 2.0, pos
     assert np.median(rot) < 0.25 and rot.max() < 0.75, rot
-    rep = gt_report.run(Project.load(root))
+    rep = gt_report.run(Project.load(root), stage_settings("report", root))
     assert rep["sequences_needing_clicks"] == {} and rep["median_pos_err_m"] == pytest.approx(np.median(pos))
 
 
@@ -77,13 +78,13 @@ def test_a_sequence_that_cannot_be_placed_is_named_with_its_reason(no_clicks, tm
     assert "3 with no GPS + gimbal metadata and no GPS georegistration of its block" in s2["error"]
     assert "click 3 or more tie points in its photos (queries/seq2/)" in s2["error"]
     assert all("no GPS + gimbal metadata" in p["reason"] for p in s2["automatic"]["photos"].values())
-    assert f"seq2: ERROR {s2['error']}" in out
+    assert f"seq2: not registered (needs clicks): {s2['error']}" in out
     assert {q for q, s in res["sequences"].items() if s["status"] == "registered"} == {"seq1", "seq3"}
     est = read_poses(root / "work" / "register" / "poses.txt")
     truth = read_poses(root / "truth" / "poses.txt")
     assert est and not any(n.startswith("queries/seq2/") for n in est)
     assert np.median([e["pos_err_m"] for e in pose_errors(est, truth, sorted(est)).values()]) < 0.30
-    rep = gt_report.run(Project.load(root))
+    rep = gt_report.run(Project.load(root), stage_settings("report", root))
     assert rep["sequences_needing_clicks"] == {"seq2": s2["error"]}
     md = (root / "reports" / "gt_report.md").read_text()
     assert "## Sequences that need clicks" in md and f"- **seq2**: {s2['error']}" in md
@@ -158,7 +159,7 @@ def test_a_sequence_whose_sfm_made_no_model_is_registered_photo_by_photo(no_clic
     block.update(n_registered=0, n_models=0, error="the mapper reconstructed nothing (no initial pair found)",
                  unregistered={n: "no verified matches with any other image" for n in names})
     (seq / "block.json").write_text(json.dumps(block))
-    res = register.run(root, force=True)
+    res = register.run(root, stage_settings("register", root), force=True)
     s1 = res["sequences"]["seq1"]
     assert s1["status"] == "registered" and s1["registered_by"].startswith("single photos"), s1
     est = read_poses(root / "work" / "register" / "poses.txt")

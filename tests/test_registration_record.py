@@ -79,7 +79,8 @@ def test_run_summary_says_how_each_sequence_was_placed(project):
     s = run_site.collect(project, [], 0.0)
     pg = s["pseudo_gt"]
     assert set(pg["registered_by"]) == {"clicked", "automatic", "single"}
-    assert pg["registered_by"]["single"].startswith("single photos (its SfM made no model): 2 of 3")
+    assert pg["registered_by"] == {"clicked": record.CLICKED, "automatic": record.AUTOMATIC, "single": record.SINGLE_PHOTOS}
+    assert pg["registered_how"]["single"].startswith("single photos (its SfM made no model): 2 of 3")
     assert set(pg["errors"]) == {"needs", "broken"}
     assert set(s["problems"]) == {f"pseudo-GT needs: {SEQUENCES['needs']['error']}",
                                   f"pseudo-GT broken: {SEQUENCES['broken']['error']}"}

@@ -19,7 +19,7 @@ import pytest
 from gtkit.cli import main as gtkit
 from gtkit.io.poses import read_poses
 from gtkit.project import Project
-from gtkit import run_site
+from gtkit import run_site, stages
 
 SEQ = "seq1"
 # small database views and small overlays keep the test short (settings a site can set in project.toml);
@@ -197,13 +197,15 @@ def test_run_builds_a_model_only_when_none_was_imported(tiny_sample, tmp_path, m
     monkeypatch.setattr(build, "run", lambda project, settings, **kw: calls.append(settings) or {"triangles": 1})
     proj = Project.load(root)
     assert run_site.model_state(proj) == ("none", None)
-    assert run_site.st_model(proj, run_site.RunOptions()) == {"triangles": 1, "photos": None, "depth_maps": None}
+    model = stages.STAGE["model"]
+    assert model.run(proj, stages.settings_for(model, proj), stages.Context()) == {"triangles": 1, "photos": None,
+                                                                                    "depth_maps": None}
     assert len(calls) == 1
     assert gtkit(["import", "model", str(root), str(tiny_sample[0] / "model" / "reference.obj")]) == 0
     proj = Project.load(root)
     assert run_site.model_state(proj)[0] == "imported"
-    with pytest.raises(run_site.Skip, match="a model was imported or delivered"):
-        run_site.st_model(proj, run_site.RunOptions())
+    with pytest.raises(stages.Skip, match="a model was imported or delivered"):
+        model.run(proj, stages.settings_for(model, proj), stages.Context())
     assert len(calls) == 1
 
 

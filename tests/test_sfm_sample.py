@@ -16,6 +16,7 @@ import pytest
 
 from gtkit.io.tiepoints import read_tiepoints, write_tiepoints
 from gtkit.sfm import register
+from conftest import stage_settings
 
 # the fixture runs the whole pseudo-GT job on the small sample: 15 min under load here (the joint BA
 # with its 2D-3D automatic tie points is most of it), over the suite's 900 s per test
@@ -89,10 +90,10 @@ def _perturbed(root, dst, share, seed=0):
 def test_twenty_percent_gross_mistakes(small, tmp_path):
     root, _ = small
     bad = _perturbed(root, tmp_path / "p", 0.2)
-    res = register.run(tmp_path / "p")
+    res = register.run(tmp_path / "p", stage_settings("register", tmp_path / "p"))
     from gtkit.evaluate import gt_report as report
 
-    rep = report.run(tmp_path / "p")
+    rep = report.run(tmp_path / "p", stage_settings("report", tmp_path / "p"))
     assert rep["n_registered"] == rep["n_images"]
     assert rep["median_pos_err_m"] <= 0.10 and rep["median_rot_err_deg"] <= 0.10, rep
     listed = set(res["bad_tiepoints"])
@@ -110,7 +111,7 @@ def test_too_few_tiepoints_fails_that_sequence_only(small, tmp_path):
     seq3 = [t for t in tps if any(o.image.startswith("queries/seq3/") and "_W" in o.image for o in t.observations)]
     write_tiepoints(dst / "tiepoints.json", [t for t in tps if t not in seq3] + seq3[:2])
     # too few clicks: the sequence is placed by its photos' automatic matches instead, and says why
-    res = register.run(dst)
+    res = register.run(dst, stage_settings("register", dst))
     s3 = res["sequences"]["seq3"]
     assert s3["status"] == "registered" and s3["registered_by"] == "automatic matches" and "only" in s3["clicks"], s3
     # its clicks still go into the joint BA, and are counted there as its own
@@ -148,7 +149,7 @@ def test_a_left_out_photo_without_clicks_is_resected_from_automatic_matches(smal
     for t in tps:
         t.observations = [o for o in t.observations if o.image != name]
     write_tiepoints(dst / "tiepoints.json", [t for t in tps if t.observations])
-    res = register.run(dst)
+    res = register.run(dst, stage_settings("register", dst))
     rec = res["sequences"]["seq2"]["left_out_by_sfm"][name]
     assert rec["resected"] and rec["from"] == "automatic matches" and rec["n_auto_matches"] >= 100, rec
     assert rec["n_clicks"] == 0 and res["images"][name]["resected"]["from"] == "automatic matches"

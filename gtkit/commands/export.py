@@ -65,12 +65,12 @@ def register(sub):
     c.set_defaults(func=run_coords)
 
 
-def _settings(defaults, section: str, project_dir, cli: dict):
-    """Flags given > project.toml [section] (when there is a project) > defaults (gtkit.settings.resolve)."""
+def _settings(stage: str, project_dir, cli: dict):
+    """Flags given > project.toml (when there is a project) > defaults (gtkit.stages.settings_for)."""
     from ..project import Project
-    from ..settings import resolve
+    from ..stages import settings_for
 
-    return resolve(defaults, section, Project.load(project_dir) if project_dir is not None else None, cli)
+    return settings_for(stage, Project.load(project_dir) if project_dir is not None else None, cli)
 
 
 def _need_project_or_out(args):
@@ -84,7 +84,7 @@ def run_dsm(args):
     from ..export import dsm
 
     _need_project_or_out(args)
-    s = _settings(dsm.DsmSettings(), "export_dsm", args.project,
+    s = _settings("export_dsm", args.project,
                   {"resolution": args.resolution, "cog": args.cog or None, "fill_holes": args.fill_holes})
     off = _offset(args.offset) if args.offset else None
     if args.project is None:
@@ -98,7 +98,7 @@ def run_ortho(args):
     from ..export import ortho
 
     _need_project_or_out(args)
-    s = _settings(ortho.OrthoSettings(), "export_ortho", args.project,
+    s = _settings("export_ortho", args.project,
                   {"resolution": args.resolution, "cog": args.cog or None})
     off = _offset(args.offset) if args.offset else None
     if args.project is None:
@@ -114,7 +114,7 @@ def run_mesh(args):
 
     if args.project is None:
         raise GtkitError("gtkit export mesh needs a project folder (its CRS and origin)")
-    s = _settings(mesh_export.MeshExportSettings(), "export_mesh", args.project,
+    s = _settings("export_mesh", args.project,
                   {"format": args.format, "decimate": args.decimate})
     print(mesh_export.run(args.project, s, args.input, args.crs, _offset(args.offset) if args.offset else None,
                           args.out_dir))
@@ -123,7 +123,7 @@ def run_mesh(args):
 def run_coords(args):
     from ..export import coordinates
 
-    s = _settings(coordinates.CoordinatesSettings(), "export_coordinates", args.project,
+    s = _settings("export_coords", args.project,
                   {"poses": args.poses, "targets": args.targets, "include_gcps": False if args.no_gcps else None})
     for path in coordinates.run(args.project, s, args.out_dir).values():
         print(path)

@@ -26,12 +26,12 @@ def register(sub):
 def run(args):
     from ..localize import localize
     from ..project import Project
-    from ..settings import resolve
+    from ..stages import settings_for
     from .render_db import executor_settings
 
-    # the ablation's settings < project.toml [localize] < the flags given (gtkit.settings.resolve)
+    # the ablation's settings < project.toml [localize] < the flags given (gtkit.stages.settings_for)
     project = Project.load(args.project)
-    s = resolve(localize.settings_for(args.ablation), "localize", project,
+    s = settings_for("localize", project, base=localize.settings_for(args.ablation), cli=
                 {"top_k": args.top_k, "gps_radius_m": args.gps_radius, "query_subset": args.queries,
                  "db_features": args.db_features})
     out = localize.run(project, s, ablation=args.ablation, executor=executor_settings(args), force=args.force)

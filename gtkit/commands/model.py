@@ -20,7 +20,7 @@ def register(sub):
     ms = p.add_subparsers(dest="model_what", metavar="WHAT", required=True)
     b = ms.add_parser("build", help="textured reference model from the georegistered reference block")
     b.add_argument("project")
-    # flags left out take project.toml [model_build], then ModelSettings' defaults (gtkit.settings.resolve)
+    # flags left out take project.toml [model_build], then ModelSettings' defaults (gtkit.stages.settings_for)
     b.add_argument("--max-image-size", type=int, default=None, help=f"px (default {S.max_image_size})")
     b.add_argument("--neighbours", type=int, default=None, help=f"stereo neighbours a photo (default {S.neighbours})")
     b.add_argument("--max-triangles", type=int, default=None, help=f"simplification budget (default {S.max_triangles})")
@@ -48,13 +48,12 @@ def register(sub):
 
 def run_build(args):
     from ..model.build import run
-    from ..model.settings import ModelSettings
     from ..project import Project
-    from ..settings import resolve
+    from ..stages import settings_for
     from .render_db import executor_settings
 
     project = Project.load(args.project)
-    s = resolve(ModelSettings(), "model_build", project, {
+    s = settings_for("model", project, {
         "max_image_size": args.max_image_size, "neighbours": args.neighbours, "max_triangles": args.max_triangles,
         "poisson_depth": args.poisson_depth, "voxel_m": args.voxel, "depth_method": args.depth_method})
     r = run(project, s, force=args.force, use=True if args.use else None, executor=executor_settings(args))

@@ -8,7 +8,7 @@ def register(sub):
     p.add_argument("project")
     p.add_argument("--poses", help="pose file (default: the register stage's pseudo-GT poses)")
     p.add_argument("--out", help="output folder (default: reports/overlays)")
-    # flags left out take project.toml [overlay], then OverlaySettings' defaults (gtkit.settings.resolve)
+    # flags left out take project.toml [overlay], then OverlaySettings' defaults (gtkit.stages.settings_for)
     p.add_argument("--modes", default=None, help="comma-separated overlay modes (default blend,swipe,edges,checker)")
     p.add_argument("--max-side", type=int, default=None, help="long side of the overlays in pixels (default 1024)")
     p.add_argument("--images", nargs="*", help="only these images (names relative to images/)")
@@ -19,11 +19,11 @@ def register(sub):
 
 def run(args):
     from ..project import Project
-    from ..render.overlay import OverlaySettings, write_overlays
-    from ..settings import resolve
+    from ..render.overlay import write_overlays
+    from ..stages import settings_for
 
     modes = tuple(m for m in args.modes.split(",") if m) if args.modes is not None else None
-    st = resolve(OverlaySettings(), "overlay", Project.load(args.project), {"max_side": args.max_side, "modes": modes})
+    st = settings_for("overlays", Project.load(args.project), {"max_side": args.max_side, "modes": modes})
 
     def progress(k, n, name, a):
         print(f"[{k}/{n}] {name}: misalignment {a.misalignment_px:.2f} px, edge distance {a.edge_distance_px:.2f} px",

@@ -21,13 +21,12 @@ def register(sub):
 
 def run(args):
     from ..project import Project
-    from ..settings import resolve
     from ..sfm import registration_record as record
-    from ..sfm.register import RegisterSettings
     from ..sfm.register import run as run_register
+    from ..stages import settings_for
 
     project = Project.load(args.project)
-    s = resolve(RegisterSettings(), "register", project, {
+    s = settings_for("register", project, {
         "sim3_max_error_m": args.sim3_max_error_m, "tie_max_px": args.tie_max_px,
         "refine_query_intrinsics": True if args.refine_query_intrinsics else None,
         "cross.enabled": False if args.no_auto_ties else None})

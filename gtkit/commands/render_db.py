@@ -12,7 +12,7 @@ def register(sub):
 
     p = sub.add_parser("render-db", help="render the localization database over the reference model")
     p.add_argument("project")
-    # flags left out take project.toml [render_db], then RenderDbSettings' defaults (gtkit.settings.resolve)
+    # flags left out take project.toml [render_db], then RenderDbSettings' defaults (gtkit.stages.settings_for)
     p.add_argument("--heights", type=_floats, default=None,
                    help="heights above the model's ground level, m (default: from the queries' GPS altitudes above "
                         f"the model's ground, else {G['heights']})")
@@ -71,7 +71,7 @@ def run(args):
     from ..errors import GtkitError
     from ..localize import database
     from ..project import Project
-    from ..settings import resolve
+    from ..stages import settings_for
 
     w = h = None
     if args.size is not None:
@@ -80,10 +80,11 @@ def run(args):
         except ValueError:
             raise GtkitError(f"--size must be WxH, got {args.size!r}") from None
     project = Project.load(args.project)
-    s = resolve(database.RenderDbSettings(), "render_db", project, {
+    s = settings_for("render_db", project, {
         "heights": args.heights, "intervals": args.intervals, "paper_pitches": args.pitches,
         "yaw_step": args.yaw_step, "anchor": args.anchor, "width": w, "height": h, "hfov_deg": args.hfov,
         "min_valid_fraction": args.min_valid, "texture_detail": args.texture_detail,
         "tile_budget_mb": args.tile_budget_mb, "views": args.views})
-    out = database.run(project, s, executor_settings(args), force=args.force)
+    out = database.run(project, s, executor_settings(args), force=args.force,
+                       localize_settings=settings_for("localize", project))
     print(f"database: {out}")

@@ -11,10 +11,13 @@ def register(sub):
 
 
 def run(args):
-    from ..evaluate.gt_report import ReportSettings  # the stages' report + checks against truth / a point cloud
-    from ..evaluate.gt_report import run as run_report
+    from ..evaluate.gt_report import run as run_report  # the stages' report + checks against truth / a point cloud
+    from ..project import Project
+    from ..stages import settings_for
 
-    r = run_report(args.project, ReportSettings(args.point_cloud, args.point_cloud_crs))
+    project = Project.load(args.project)
+    r = run_report(project, settings_for("report", project, {"point_cloud": args.point_cloud,
+                                                             "point_cloud_crs": args.point_cloud_crs}))
     print(f"registered {r['n_registered']}/{r['n_images']}; median reprojection {r.get('median_reproj_px')} px; "
           f"tie points {r.get('median_tiepoint_reproj_px')} px")
     if "median_pos_err_m" in r:

@@ -69,12 +69,12 @@ def _print_reference(r: dict) -> None:
 
 def run(args):
     from ..project import Project
+    from ..sfm.blocks import run_queries, run_reference
+    from ..stages import settings_for
     from .render_db import executor_settings
-    from ..settings import resolve
-    from ..sfm.blocks import SfmSettings, run_queries, run_reference
 
     project = Project.load(args.project)
-    s = resolve(SfmSettings(), "sfm", project, {
+    s = settings_for(f"sfm_{args.block}", project, {
         "features.max_image_size": args.max_image_size, "features.max_num_features": args.max_features,
         "refine_intrinsics": args.refine_intrinsics, "matching.exhaustive_max_images": args.exhaustive_max,
         "georegister.gps_inlier_m": args.gps_inlier_m, "georegister.gcp_accuracy_m": args.gcp_accuracy,

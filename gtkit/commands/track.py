@@ -51,9 +51,12 @@ def run(args):
     else:
         action, root = "run", args.first
     if action == "calibrate":
+        from ..project import Project
+        from ..stages import settings_for
         from ..track.calibrate import run as calibrate
 
-        rig = calibrate(root, force=args.force)
+        project = Project.load(root)
+        rig = calibrate(project, settings_for("track", project)["rig"], force=args.force)
         print(json.dumps({k: v for k, v in rig.info.items() if k != "per_pair"}, indent=2))
         return 0
     if action == "evaluate":
@@ -65,13 +68,14 @@ def run(args):
                                               "recall_h") if k in rep}, indent=2))
         return 0
     from ..project import Project
-    from ..settings import resolve
-    from ..track.tracker import TrackSettings, run as track
+    from ..stages import settings_for
+    from ..track.tracker import run as track
 
-    # flags given > project.toml [track] > TrackSettings' defaults (gtkit.settings.resolve)
-    s = resolve(TrackSettings(), "track", Project.load(root), {
-        "detections": args.detections or None, "poses": args.poses or None, "covariances": args.covariances or None,
-        "foot_point": args.foot_point, "smooth": False if args.no_smooth else None})
+    # flags given > project.toml [track] > TrackSettings' defaults (gtkit.stages.settings_for)
+    s = settings_for("track", Project.load(root), {
+        "track.detections": args.detections or None, "track.poses": args.poses or None,
+        "track.covariances": args.covariances or None, "track.foot_point": args.foot_point,
+        "track.smooth": False if args.no_smooth else None})["track"]
     summary = track(root, s, force=args.force)
     print(json.dumps({k: summary[k] for k in ("n_detections", "n_located", "status", "median_sigma_h_m",
                                               "csv", "geojson")}, indent=2))

@@ -108,7 +108,7 @@ class ReportSettings:
     point_cloud_crs: str | None = None  # its CRS when the file does not say (default: the file's, else project's)
 
 
-def run(project, settings: ReportSettings | None = None) -> dict:
+def run(project, settings: ReportSettings) -> dict:
     """``reports/gt_report.json`` + ``.md``: the figures of :func:`gtkit.sfm.report.collect`, plus
     errors against ``truth/`` poses (sample sites) and the offset from an independent point cloud."""
     from ..project import Project
@@ -117,10 +117,12 @@ def run(project, settings: ReportSettings | None = None) -> dict:
     from ..sfm.guided_clicks import GUIDANCE_FILE, summary_line
     from ..sfm.register import STAGE as REGISTER_STAGE
 
+    from ..project import settings_dict
+
     project = project if isinstance(project, Project) else Project.load(project)
-    settings = settings or ReportSettings()
     P = project.paths
     rep = report.collect(project)
+    rep["settings"] = settings_dict(settings)     # what made it (the report stage's settings)
     checks: dict = {"rows": [], "after_table": [], "plots": [], "columns": []}
     truth = P.truth / "poses.txt"
     if truth.is_file():

@@ -194,10 +194,9 @@ def write_geo_txt(path: Path, cameras: list[GeoPoint], frame: GeoFrame) -> Path:
     return write_text(path, "\n".join(lines) + "\n")
 
 
-def run(project: Project | str | Path, settings: CoordinatesSettings | None = None,
+def run(project: Project | str | Path, settings: CoordinatesSettings,
         out_dir: str | Path | None = None) -> dict[str, Path]:
     """Write camera and target coordinates; returns {file kind: path}."""
-    settings = settings or CoordinatesSettings()
     proj = project if isinstance(project, Project) else Project.load(project)
     frame = proj.frame
     out_dir = Path(out_dir) if out_dir is not None else proj.paths.coordinates

@@ -107,20 +107,18 @@ def make_dsm(source, frame: GeoFrame, out: Path, settings: DsmSettings, source_n
     return summary
 
 
-def run(project: Project | str | Path, settings: DsmSettings | None = None, input: str | Path | None = None,
+def run(project: Project | str | Path, settings: DsmSettings, input: str | Path | None = None,
         crs: str | None = None, offset=None, out: str | Path | None = None) -> Path:
     """The DSM stage of a project: the reference model (or ``input``) -> ``exports/dsm.tif``.
     Skips when the output exists and settings and inputs are unchanged."""
-    settings = settings or DsmSettings()
     proj = project if isinstance(project, Project) else Project.load(project)
     return run_raster_stage(proj, settings, input, crs, offset, out, default_out=proj.paths.dsm, stage=STAGE,
                             make=make_dsm, label="DSM", textures=False)
 
 
-def run_file(input: str | Path, out: str | Path, settings: DsmSettings | None = None, crs: str | None = None,
+def run_file(input: str | Path, out: str | Path, settings: DsmSettings, crs: str | None = None,
              offset=None) -> Path:
     """A DSM of a mesh or point cloud outside any project, in the file's own CRS."""
-    settings = settings or DsmSettings()
     source, frame = load_surface(input, None, crs, offset, textures=False)
     make_dsm(source, frame, Path(out), settings, str(input))
     return Path(out)

@@ -45,11 +45,10 @@ class MeshExportSettings:
     name: str = "model"            # file name stem inside exports/mesh/
 
 
-def run(project: Project | str | Path, settings: MeshExportSettings | None = None,
+def run(project: Project | str | Path, settings: MeshExportSettings,
         input: str | Path | None = None, crs: str | None = None, offset=None,
         out_dir: str | Path | None = None) -> Path:
     """Export the reference model (or ``input``) to ``exports/mesh/<name>.<format>`` + sidecar."""
-    settings = settings or MeshExportSettings()
     if settings.format not in FORMATS:
         raise GtkitError(f"unknown mesh format {settings.format!r} (choose {', '.join(FORMATS)})")
     if settings.decimate is not None and settings.decimate < 4:

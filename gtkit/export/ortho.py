@@ -45,19 +45,17 @@ def make_ortho(source, frame, out: Path, settings: OrthoSettings, source_name: s
             "covered_share": float(valid.mean())}
 
 
-def run(project: Project | str | Path, settings: OrthoSettings | None = None, input: str | Path | None = None,
+def run(project: Project | str | Path, settings: OrthoSettings, input: str | Path | None = None,
         crs: str | None = None, offset=None, out: str | Path | None = None) -> Path:
     """The orthophoto stage: the reference model (or ``input``) -> ``exports/ortho.tif``."""
-    settings = settings or OrthoSettings()
     proj = project if isinstance(project, Project) else Project.load(project)
     return run_raster_stage(proj, settings, input, crs, offset, out, default_out=proj.paths.ortho, stage=STAGE,
                             make=make_ortho, label="orthophoto")
 
 
-def run_file(input: str | Path, out: str | Path, settings: OrthoSettings | None = None, crs: str | None = None,
+def run_file(input: str | Path, out: str | Path, settings: OrthoSettings, crs: str | None = None,
              offset=None) -> Path:
     """An orthophoto of a mesh (or coloured point cloud) outside any project, in its own CRS."""
-    settings = settings or OrthoSettings()
     source, frame = load_surface(input, None, crs, offset)
     make_ortho(source, frame, Path(out), settings, str(input))
     return Path(out)

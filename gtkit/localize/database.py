@@ -468,12 +468,12 @@ def plan_views(project: Project, s: RenderDbSettings) -> tuple[list[View], dict,
                    "grid": {**grid, **{k: getattr(s, k) for k in GRID_FIELDS}}}, s
 
 
-def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSettings(),
-        executor: ExecutorSettings = ExecutorSettings(), chunk: int = 8, force: bool = False,
-        localize_settings=None) -> Path:
+def run(project: Project | str | Path, settings: RenderDbSettings,
+        executor: ExecutorSettings = ExecutorSettings(), chunk: int = 8, force: bool = False, *,
+        localize_settings) -> Path:
     """Render the database; returns its folder. Resumes view by view when settings match.
-    ``localize_settings``: the priors that choose the views when ``settings.views`` is "reachable"
-    (None = the project's [localize] settings)."""
+    ``localize_settings``: the localize stage's settings (``gtkit.stages.settings_for("localize", ...)``),
+    whose priors choose the views when ``settings.views`` is "reachable" (None only with "all")."""
     project = project if isinstance(project, Project) else Project.load(project)
     _check_texture_detail(settings)              # an unknown texture_detail is refused before any work
     if settings.views not in ("reachable", "all"):
@@ -484,11 +484,10 @@ def run(project: Project | str | Path, settings: RenderDbSettings = RenderDbSett
     model_in = {"model": model_fingerprint(P.root, settings.model)}
     inputs = dict(model_in)
     if settings.views == "reachable":
-        from ..settings import resolve
         from .reach import prior_settings_key
-        from .settings import LocalizeSettings
 
-        localize_settings = localize_settings or resolve(LocalizeSettings(), "localize", project)
+        if localize_settings is None:
+            raise GtkitError("render-db: the reachable views need the localize settings (their priors)")
         inputs["localize_priors"] = prior_settings_key(localize_settings)
     if not _grid_given(settings) or settings.views == "reachable":   # the queries' files are inputs
         from ..queries import query_cameras, query_photos

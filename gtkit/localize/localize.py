@@ -520,7 +520,7 @@ def _count(sources) -> dict[str, int]:
     return dict(Counter(s.split(" (")[0] for s in sources))
 
 
-def run(project: Project | str | Path, settings: LocalizeSettings = LocalizeSettings(), ablation: str = "default",
+def run(project: Project | str | Path, settings: LocalizeSettings, ablation: str = "default",
         executor: ExecutorSettings = ExecutorSettings(), force: bool = False) -> Path:
     """Localize every query; returns the output folder. Skips when settings and inputs match."""
     project = project if isinstance(project, Project) else Project.load(project)

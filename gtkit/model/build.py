@@ -290,12 +290,11 @@ def depth_folder(project: Project, settings: ModelSettings, method: str) -> Path
     return project.paths.stage(STAGE) / "depth" / key
 
 
-def run(project: Project | str | Path, settings: ModelSettings | None = None, *, force: bool = False,
+def run(project: Project | str | Path, settings: ModelSettings, *, force: bool = False,
         use: bool | None = None, show: bool = True, executor=None) -> dict:
     """Build the reference model; returns the summary (also in ``work/model/stage.json``).
     ``executor``: where the SGBM depth maps run (:func:`depth_maps`; None: in this process)."""
     project = project if isinstance(project, Project) else Project.load(project)
-    settings = settings or ModelSettings()
     method = patchmatch.resolve_method(settings.depth_method)     # a path that cannot run is refused first
     P = project.paths
     work = P.stage(STAGE)

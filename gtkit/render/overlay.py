@@ -465,8 +465,8 @@ def _released(renderer):
         renderer.release()
 
 
-def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None, out_dir: str | Path | None = None,
-                   settings: OverlaySettings | None = None, images: list[str] | None = None,
+def write_overlays(project_dir: str | Path, pose_file: str | Path | None, out_dir: str | Path | None,
+                   settings: OverlaySettings, images: list[str] | None = None,
                    progress=None, model_path: str | Path | None = None) -> dict:
     """Write overlay PNGs for every posed image and ``alignment.json`` with the edge distance
     of each; returns that summary. Default output: ``reports/overlays/``.
@@ -482,7 +482,7 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None = None,
     from ..project import Project, StageClock
 
     clock = StageClock()  # what the overlays cost (wall, CPU, peak memory, disk): the scale table reads it
-    st = settings or OverlaySettings()
+    st = settings
     for m in st.modes:
         if m not in MODES:
             raise GtkitError(f"unknown overlay mode {m!r} (one of {', '.join(MODES)})")

@@ -48,7 +48,6 @@ from ..io.tiepoints import TiePoint, read_tiepoints
 from ..pose import Pose, skew
 from ..project import PROJECT_FILE, Project, file_fingerprint, mark_stage_done, stage_done, start_stage_clock
 from . import quiet_colmap
-from ..settings import resolve
 from .blocks import QUERIES_STAGE, REFERENCE_STAGE
 from ..io.exif import prior_pose, read_photo_meta
 from .crossmatch import (AUTO_PREFIX, CrossMatchSettings, ReferencePoints, cross_matches, match_photo,
@@ -912,11 +911,10 @@ def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str
 
 # --- the stage ---------------------------------------------------------------------------------
 
-def run(project: Project | str | Path, settings: RegisterSettings | None = None, force: bool = False) -> dict:
+def run(project: Project | str | Path, settings: RegisterSettings, force: bool = False) -> dict:
     """``gtkit register DIR``: pseudo-GT poses of every registered query photo."""
     quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
-    settings = settings or resolve(RegisterSettings(), "register", project)
     P = project.paths
     if settings.systematic_swing_where not in ("biased", "all"):
         raise GtkitError(f'[register] systematic_swing_where = "{settings.systematic_swing_where}": '

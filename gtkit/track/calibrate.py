@@ -10,7 +10,6 @@ from the photos, see the module docs).
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -71,16 +70,11 @@ def load_rgb(path: Path) -> np.ndarray:
     return img[..., ::-1]
 
 
-def run(project: Project | str | Path, settings: RigCalibrationSettings | None = None, force: bool = False) -> Rig:
+def run(project: Project | str | Path, settings: RigCalibrationSettings, force: bool = False) -> Rig:
     project = project if isinstance(project, Project) else Project.load(project)
     P = project.paths
-    spec = project.section("rig")
-    settings = settings or RigCalibrationSettings()
-    if "offset_m" in spec and settings.offset_m == (0.0, 0.0, 0.0):
-        off = tuple(float(v) for v in spec["offset_m"])
-        if len(off) != 3:
-            raise GtkitError("[rig] offset_m must be three numbers (metres, wide camera frame)", P.project_toml)
-        settings = replace(settings, offset_m=off)
+    if len(settings.offset_m) != 3:
+        raise GtkitError("[rig] offset_m must be three numbers (metres, wide camera frame)", P.project_toml)
     pairs = photo_pairs(project)
     if not pairs:
         raise GtkitError(f"no wide/zoom photo pairs (<idx>{WIDE_SUFFIX}.jpg + <idx>{ZOOM_SUFFIX}.jpg) "

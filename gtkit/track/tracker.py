@@ -256,10 +256,10 @@ def write_outputs(recs: list[dict], project: Project, out_csv: Path) -> tuple[Pa
     return out_csv, gj
 
 
-def run(project: Project | str | Path, settings: TrackSettings | None = None, force: bool = False) -> dict:
+def run(project: Project | str | Path, settings: TrackSettings, force: bool = False) -> dict:
     """The tracking stage. Returns a summary (counts, output paths, per-status counts)."""
     project = project if isinstance(project, Project) else Project.load(project)
-    s = settings or TrackSettings()
+    s = settings
     P = project.paths
     det_path, pose_path, cov_path, dets, poses, covs, rig, dsm = load_inputs(project, s)
     inputs = {"detections": file_fingerprint(det_path), "poses": file_fingerprint(pose_path),
