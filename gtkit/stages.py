@@ -109,7 +109,7 @@ def model_state(project: Project) -> tuple[str, Path | None]:
     """(``none`` | ``built`` | ``imported``, the model's path). ``imported`` is any model that
     ``gtkit model build`` did not write (``gtkit import model`` or files placed in model/);
     a built one is rebuilt when its reference block changed (the build stage's own resume)."""
-    from .export.sources import reference_model
+    from .model_files import reference_model
 
     try:
         path = reference_model(project.paths)

@@ -16,38 +16,11 @@ from ..errors import GtkitError
 from ..geo import GeoFrame, crs_name, parse_crs
 from ..io.mesh import MESH_SUFFIXES, load_model, model_shift, read_offset_sidecar, sidecar_path
 from ..io.obj_geometry import read_obj_geometry
-from ..project import Paths, file_fingerprint
+from ..project import file_fingerprint
 from ..io.pointcloud import POINT_SUFFIXES, is_point_cloud, read_points
 from ..io.tiled import is_tiled
+from ..model_files import REFERENCE_MODEL, reference_model  # noqa: F401  (where they were first)
 from .surface import MeshSurface, ObjMeshSurface, ObjTexturedSurface, PointSurface, TiledSurface
-
-REFERENCE_MODEL = "reference.obj"
-
-
-def reference_model(paths: Paths) -> Path:
-    """The project's reference model: ``model/reference.obj``, else its tiled model (built by
-    ``gtkit model build``: project.toml [model] tiled; imported by ``gtkit import model``:
-    [imports.model]), else the only mesh in model/."""
-    import tomllib
-
-    p = paths.model / REFERENCE_MODEL
-    if p.is_file():
-        return p
-    if paths.project_toml.is_file():
-        config = tomllib.loads(paths.project_toml.read_text())
-        tiled = config.get("model", {}).get("tiled")
-        if tiled and (paths.root / tiled).is_dir():
-            return paths.root / tiled
-        imported = config.get("imports", {}).get("model", {})
-        if imported.get("format") == "tiled" and Path(imported.get("source", "")).exists():
-            return Path(imported["source"])
-    found = sorted(f for f in paths.model.glob("*") if f.suffix.lower() in MESH_SUFFIXES) if paths.model.is_dir() else []
-    if len(found) == 1:
-        return found[0]
-    if not found:
-        raise GtkitError(f"no reference model (expected {REFERENCE_MODEL} or one mesh file); give --input", paths.model)
-    raise GtkitError(f"several meshes ({', '.join(f.name for f in found)}); give --input", paths.model)
-
 
 def input_fingerprint_paths(path: Path) -> list[Path]:
     if is_tiled(path):

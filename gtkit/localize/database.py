@@ -35,7 +35,7 @@ from ..camera import Camera
 from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json
 from ..io.poses import write_intrinsics, write_poses
-from ..io.tiled import is_tiled
+from ..model_files import model_fingerprint
 from ..project import (Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done,
                        start_stage_clock)
 from ..render.frustum import ray_box_fraction
@@ -206,13 +206,6 @@ def probed_fraction(r, cam, probe, view: "View", s: "RenderDbSettings", boxes, t
     return frac
 
 
-def model_fingerprint(root: Path, model: str) -> str:
-    path = Path(root) / model
-    if is_tiled(path):
-        return file_fingerprint((path if path.is_dir() else path.parent) / "metadata.xml")
-    return file_fingerprint(path)
-
-
 def _renderer_for(root: str, s: "RenderDbSettings", ground_z: float):
     detail = view_detail(s, ground_z)
     key = (root, s.model, s.tile_budget_mb, s.texture_anisotropy, detail)
@@ -346,7 +339,7 @@ def query_flight(project: Project, renderer, extent, ground_z: float, cells: int
     whose intrinsics resolve (:func:`gtkit.queries.query_cameras`)."""
     from ..io.exif import capture_seconds, read_photo_meta
     from ..queries import query_cameras, query_photos
-    from ..sfm.gps_fit import altitude_drift_at
+    from ..altitude_drift import altitude_drift_at
 
     names = query_photos(project)
     out = {"n_queries": len(names), "agl_m": {}, "off_nadir_deg": {}, "hfov_deg": {}, "notes": []}

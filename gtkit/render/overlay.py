@@ -387,7 +387,7 @@ class OverlayScene:
             self.cameras.update(intrinsics_for(P, ref))
         self.poses.update(read_poses(self.pose_file))
         self.cameras.update(intrinsics_for(P, self.pose_file))
-        from ..export.sources import reference_model
+        from ..model_files import reference_model
 
         model_path = Path(model_path) if model_path else reference_model(project.paths)
         self.model_path = model_path
@@ -478,7 +478,7 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None, out_di
     import cv2
 
     from ..io.atomic import atomic_path, write_json
-    from ..localize.database import model_fingerprint
+    from ..model_files import model_fingerprint
     from ..project import Project, StageClock
 
     clock = StageClock()  # what the overlays cost (wall, CPU, peak memory, disk): the scale table reads it
