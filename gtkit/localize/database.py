@@ -18,6 +18,10 @@ View names: ``h<H>/p<position>_t<paper pitch>_y<yaw>``, see :mod:`gtkit.localize
 Memory: one view is rendered at a time per worker. Which parts of the model a view draws is
 chosen per view by a *part selector* (``parts`` setting; ``all`` draws everything); a tiled
 model can register a selector that picks the tiles a view sees.
+
+Size: one module for the database stage end to end (the grid resolved from the queries, the views
+the queries can reach, rendering fanned out and resumed, the record), which share the view record
+and its resume rules; the grid itself is :mod:`gtkit.localize.grid`, the reach :mod:`.reach`.
 """
 from __future__ import annotations
 

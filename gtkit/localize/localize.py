@@ -44,6 +44,10 @@ queries that were localized; never a prior or a database pose), ``status.json`` 
 ok, reason, retrieved views with scores, matches/inliers, seconds by step), ``pairs.txt``
 (query, retrieved view, rank), ``covariances.txt`` (6x6 pose covariance of every localized
 query, :func:`gtkit.localize.pnp.pose_covariance`; the tracker reads it), ``stage.json``.
+
+Size: the stage's per-query steps (retrieval with priors, matching, lifting, PnP, the fallback
+rounds) share one query record and its reasons; its parts live beside it (features, prior, pnp,
+lift, reach), and what stays here is the loop that ties them to one result per query.
 """
 from __future__ import annotations
 

@@ -17,6 +17,9 @@ What is drawn, all read from the project's files (never ``truth/``):
 Rendering uses VTK's EGL window (``VTK_DEFAULT_OPENGL_WINDOW``), so it runs headless like the rest
 of gtkit, always in a child process (:mod:`gtkit.view.process`: VTK and gtkit's own moderngl
 renderer must not share a process).
+
+Size: every layer of the scene (model, cameras, trajectories, tie points, GCPs, targets) is read
+from the project and drawn by one scene builder; each layer is a small function here.
 """
 from __future__ import annotations
 
