@@ -10,8 +10,8 @@ chosen number of photos the next GCP. After each click the GCP is triangulated, 
 (a shift or a Sim(3) to the clicked GCPs, or, with no GPS, a Sim(3) once 3 GCPs are clicked in 2+
 photos) and every prediction updated (:func:`gtkit.gcp.marking.solve`).
 
-Where a checkered target's centre is found near the prediction (:mod:`gtkit.gcp.snap`) it is
-shown as "A": the A key places the GCP there. Keys (through the main window): N / P next / previous
+Where the prediction is sure to 3 sigma <= 12 px and a checkered target's centre is found within
+that (:mod:`gtkit.gcp.snap`), it is shown as "A": the A key places the GCP there. Keys (through the main window): N / P next / previous
 photo, G next GCP, Delete removes the click
 in this photo, Ctrl+Z / Ctrl+Shift+Z undo / redo. Every edit is in ``gcp_list.txt`` at once
 (:mod:`gui.gcp_store`), where ``gtkit sfm`` / ``gtkit run`` read it.
@@ -33,7 +33,7 @@ from .image_view import ImageView
 
 log = logging.getLogger(__name__)
 ROLE = Qt.ItemDataRole.UserRole
-SNAP_MAX_PX = 12.0     # a snapped mark is searched within min(3 sigma, this) of the prediction
+SNAP_MAX_PX = 12.0     # a snapped mark is offered where 3 sigma of the prediction is within this (searched there)
 MIN_HALF_PX = 40.0     # the zoomed view spans at least +-this many photo pixels around the prediction
 SIGMAS_SHOWN = 4.0     # ... and at least +-this many sigma
 
@@ -233,14 +233,16 @@ class GcpPage(QWidget):
         gray = cv2.imread(str(self.paths.images / photo), cv2.IMREAD_GRAYSCALE)
         if gray is None:
             return None
-        sig = pr.sigma_px if np.isfinite(pr.sigma_px) else SNAP_MAX_PX
-        xy, _why = snap_target(gray, (pr.x, pr.y), float(np.clip(3.0 * sig, 4.0, SNAP_MAX_PX)))
+        if not np.isfinite(pr.sigma_px) or 3.0 * pr.sigma_px > SNAP_MAX_PX:
+            return None   # the target may be farther than the search reaches: another corner would be found
+        xy, _why = snap_target(gray, (pr.x, pr.y), float(max(3.0 * pr.sigma_px, 4.0)))
         return None if xy is None else (float(xy[0]), float(xy[1]))
 
     def accept_snap(self):
         """The A key: place the GCP at the snapped target centre (shown as "A" in the photo)."""
         if self.snap is None:
-            self.status.emit("no checkered target centre found near the prediction: click it")
+            self.status.emit("no snapped mark: no checkered target centre near the prediction, or the prediction is "
+                             f"too uncertain (3 sigma > {SNAP_MAX_PX:.0f} px) to search: click it")
             return
         self.place(*self.snap)
 

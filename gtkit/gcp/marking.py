@@ -35,7 +35,8 @@ from .points import GCPPoint
 
 CLICK_SIGMA_PX = 1.0     # a careful click on a GCP target (the sample's clicks: 0.5 px)
 FIT_FLOOR_M = 0.03       # a fit's residual scale is never taken below this (block shape + triangulation)
-MARGIN_PX = 4.0          # a prediction this close to the photo's edge is still in the photo
+MARGIN_PX = 4.0
+TILT_FLOOR_DEG = {"aerial prior": 1.5, "gimbal": 0.2}   # systematic error of a gravity source (1 sigma)          # a prediction this close to the photo's edge is still in the photo
 
 
 @dataclass
@@ -48,6 +49,11 @@ class Block:
     sigma_v_m: float | None = None
     how: str = ""
     by_gps: bool = False            # placed by 3+ GPS positions (its rotation and scale held by many points)
+    # how well the GPS fit holds the block's heading, tilt and scale (1 sigma, rad / relative)
+    heading_sigma: float = 0.0
+    tilt_sigma: float = 0.0
+    scale_sigma: float = 0.0
+    centre: np.ndarray | None = None  # where the block's rotation and scale are least uncertain
 
     @property
     def photos(self) -> list[str]:
@@ -90,8 +96,38 @@ def load_block(paths) -> Block:
         how = f"placed by {geo.get('fitted_to', 'georegistration')}"
         by_gps = int(geo.get("n_gps") or 0) >= 3
     else:
-        by_gps = False
-    return Block(poses, cams, seen, placed, sh, sv, how, by_gps)
+        by_gps, q, geo = False, {}, {}
+    C = np.array([p.center for p in poses.values()]).reshape(-1, 3)
+    pts = np.concatenate([v for v in seen.values()]) if seen else np.zeros((0, 3))
+    centre = np.r_[C[:, :2].mean(0), np.median(pts[:, 2]) if len(pts) else C[:, 2].mean()] if len(C) else None
+    block = Block(poses, cams, seen, placed, sh, sv, how, by_gps, centre=centre)
+    if by_gps:
+        _gps_precision(block, q, geo, C)
+    return block
+
+
+def _gps_precision(block: Block, q: dict, geo: dict, C: np.ndarray) -> None:
+    """The GPS fit's heading / tilt / scale precision: as the fit states it (gravity-held fits:
+    ``heading_precision_deg``, ``scale_precision``, gravity's sigma), else from the positions'
+    scatter over the block's extent and their number."""
+    n = max(int(q.get("n_inliers") or geo.get("n_inliers") or len(C)), 1)
+    ext = float(np.sqrt(np.mean(np.sum((C[:, :2] - C[:, :2].mean(0)) ** 2, axis=1)))) if len(C) else 1.0
+    sh = float(q.get("scatter_h_m") or q.get("horizontal_residual_median_m") or geo.get("rmse_inliers_m") or 0.1)
+    sv = float(q.get("scatter_v_m") or q.get("vertical_residual_median_m") or sh)
+    per = 1.0 / (max(ext, 1e-6) * np.sqrt(n))
+    block.heading_sigma = np.radians(q["heading_precision_deg"]) if q.get("heading_precision_deg") else sh * per
+    block.scale_sigma = float(q["scale_precision"]) if q.get("scale_precision") else sh * per
+    fit = geo.get("fit") or {}
+    up = fit.get("up") or {}
+    if fit.get("mode") == "gravity-held" and up.get("sigma_deg") is not None:
+        # gravity's stated sigma is its scatter; the systematic error of its source sets a floor
+        # (the aerial prior: >= 1.5 deg, as gtkit.sfm.georegister judges it; a gimbal: 0.2 deg)
+        floor = TILT_FLOOR_DEG.get(str(up.get("source")), TILT_FLOOR_DEG["gimbal"])
+        block.tilt_sigma = np.radians(max(float(up["sigma_deg"]), floor))
+    else:
+        block.tilt_sigma = sv * per
+    block.heading_sigma, block.tilt_sigma, block.scale_sigma = (max(v, 1e-5) for v in
+                                                                (block.heading_sigma, block.tilt_sigma, block.scale_sigma))
 
 
 @dataclass
@@ -276,6 +312,45 @@ def _sim_cov(sim: Similarity, used, covs_w: list[np.ndarray], c: np.ndarray) -> 
     return cov * max(1.0, chi2 / dof if dof > 0 else 1.0)
 
 
+def _small_sim(theta: np.ndarray, c: np.ndarray) -> Similarity:
+    """The Sim(3) Y -> c + (1 + ds) R(w) (Y - c) + dt of a correction theta = (dt, w, ds)."""
+    import pycolmap
+
+    w = theta[3:6]
+    a = float(np.linalg.norm(w))
+    R = pycolmap.Rotation3d(np.r_[np.sin(a / 2) * w / a, np.cos(a / 2)]).matrix() if a > 1e-12 else np.eye(3)
+    sc = 1.0 + float(theta[6])
+    return Similarity(sc, R, c + theta[:3] - sc * R @ c)
+
+
+def gps_held_fit(block: Block, used, covs_w: list[np.ndarray]) -> tuple[Similarity, np.ndarray, int]:
+    """A block placed by GPS refined by the clicked GCPs: a 7-parameter correction (shift, rotation,
+    scale about the block's centre) weighted by what the GPS fit claims for each (absolute accuracy,
+    heading / tilt / scale precision) and by each GCP's triangulation + coordinates covariance.
+    Returns the corrected world_from_block, the correction's covariance (inflated by the residuals'
+    chi-square where it exceeds their count) and the number of GCPs."""
+    c = block.centre if block.centre is not None else np.zeros(3)
+    sh, sv = block.sigma_h_m or 1.0, block.sigma_v_m or block.sigma_h_m or 1.0
+    P = np.diag(1.0 / np.square([sh, sh, sv, block.tilt_sigma, block.tilt_sigma, block.heading_sigma,
+                                 block.scale_sigma]))
+    N, b = P.copy(), np.zeros(7)
+    rows = []
+    for (p, x), C in zip(used, covs_w):
+        W = np.linalg.inv(C)
+        A = _sim_rows(x, c)
+        r = p.xyz - x
+        N += A.T @ W @ A
+        b += A.T @ W @ r
+        rows.append((A, W, r))
+    theta = np.linalg.solve(N, b)
+    cov = np.linalg.inv(N)
+    if len(rows) >= 2:   # residuals larger than their covariances say: inflate (dof net of what the GCPs fit)
+        chi2 = sum(float((r - A @ theta) @ W @ (r - A @ theta)) for A, W, r in rows)
+        p_eff = float(np.trace(cov @ (N - P)))
+        cov *= max(1.0, chi2 / max(3 * len(rows) - p_eff, 1.0))
+    return _small_sim(theta, c), cov, len(rows)
+
+
 def solve(block: Block, points: list[GCPPoint], clicks: dict[str, dict[str, tuple[float, float]]],
           click_sigma_px: float = CLICK_SIGMA_PX, max_px: float = 4.0) -> Solution:
     """See the module doc. ``clicks``: {GCP name: {photo: (x, y)}} (photos outside the block are kept
@@ -302,8 +377,14 @@ def solve(block: Block, points: list[GCPPoint], clicks: dict[str, dict[str, tupl
         covs[p.name] = _tri_cov(block, tri.xyz, [n for n, u in zip(names, tri.used) if u], click_sigma_px)
         if not p.check:
             used.append((p, tri.xyz))
-    sim, how, s0, lev = _fit(block, used)
-    if sim is not None and "centre" in lev and all(covs.get(p.name) is not None for p, _ in used):
+    if block.placed and block.by_gps and all(covs.get(p.name) is not None for p, _ in used):
+        sim, cov, k = gps_held_fit(block, used, [covs[p.name] + _point_cov_world(p, 0.0, 0.0) for p, _ in used])
+        how = (f"{block.how}, refined by {k} GCP{'s' if k != 1 else ''} (weighted by the GPS fit's own precision)"
+               if k else block.how)
+        s0, lev = None, {"k": k, "centre": block.centre, "cov_theta": cov, "gps": True}
+    else:
+        sim, how, s0, lev = _fit(block, used)
+    if sim is not None and "centre" in lev and "gps" not in lev and all(covs.get(p.name) is not None for p, _ in used):
         Rw = sim.scale * sim.R   # block -> world, linear part
         lev["cov_theta"] = _sim_cov(sim, used, [Rw @ covs[p.name] @ Rw.T + _point_cov_world(p, 0.0, 0.0)
                                                 for p, _ in used], lev["centre"])
@@ -322,11 +403,11 @@ def solve(block: Block, points: list[GCPPoint], clicks: dict[str, dict[str, tupl
             cov_b = covs.get(p.name)
         elif sim is not None:
             X, src = np.linalg.solve(sim.R * sim.scale, p.xyz - sim.t), "coordinates"
-            if lev["k"] == 0:
-                cov_w = _point_cov_world(p, block.sigma_h_m or 1.0, block.sigma_v_m or block.sigma_h_m or 1.0)
-            elif lev.get("cov_theta") is not None:   # through the Sim(3)'s own uncertainty
+            if lev.get("cov_theta") is not None:   # through the fit's own uncertainty
                 A = _sim_rows(p.xyz, lev["centre"])
                 cov_w = A @ lev["cov_theta"] @ A.T + _point_cov_world(p, 0.0, 0.0)
+            elif lev["k"] == 0:
+                cov_w = _point_cov_world(p, block.sigma_h_m or 1.0, block.sigma_v_m or block.sigma_h_m or 1.0)
             else:
                 f = 1.0 + 1.0 / lev["k"]
                 if "spread" in lev:
