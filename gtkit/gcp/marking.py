@@ -7,9 +7,10 @@ the clicks:
 
 - triangulates every GCP clicked in 2+ photos (the block's own frame; clicks farther than
   ``max_px`` from the rest are dropped, as georegistration does), with its image residual;
-- fits the block to the world: a placed block is shifted onto the clicked GCPs (with 4+ GCPs a
-  Sim(3) where it predicts left-out GCPs better); an unplaced block gets a Sim(3) once 3 GCPs, not
-  on one line, are triangulated. Check points never enter it; they get their X / Y / Z error;
+- fits the block to the world: a block placed by GPS is refined by a 7-parameter correction
+  weighted by what its GPS fit holds (:func:`gps_held_fit`: one GCP fixes the shift, more the
+  heading, tilt and scale as far as they beat the GPS); a block placed by GCPs alone, or not placed,
+  gets a Sim(3) once 3 GCPs, not on one line, are triangulated (a shift before that where placed). Check points never enter it; they get their X / Y / Z error;
 - predicts every GCP in every photo that sees it (in front, inside the photo, not hidden behind
   the block's own points there): from its triangulated position where it has one, else from its
   coordinates through the fit, each with its 1-sigma uncertainty in pixels (the placement's or the
@@ -241,12 +242,11 @@ def _fit(block: Block, used: list[tuple[GCPPoint, np.ndarray]]) -> tuple[Similar
     """world_from_block from the triangulated control GCPs ``used`` ((point, block xyz)); the fit in
     words; its residual scale (m); the leverage data.
 
-    A block placed by GPS keeps its rotation and scale (from many positions they are better known than
-    from a few GCPs, measured on the tiny sample: a Sim(3) to 3 GCPs put the 4th 0.58 m off in Z, the
-    shift 0.05 m) and is shifted onto the GCPs, unless with 4+ GCPs a Sim(3) predicts each
-    left-out GCP better than the shift does. An unplaced block, or one placed by GCPs alone (an
-    earlier gcp_list.txt), gets a Sim(3) (with its covariance) once 3 GCPs not on one line are
-    triangulated."""
+    Used where :func:`gps_held_fit` is not (a block placed by GCPs alone, or not placed, or a GCP
+    without a covariance): a Sim(3) (with its covariance) once 3 GCPs not on one line are
+    triangulated; before that a placed block is shifted onto its GCPs. (A block placed by GPS with
+    4+ GCPs and no covariance: the Sim(3) only where it predicts left-out GCPs better than the shift;
+    on the tiny sample a free Sim(3) to 3 GCPs put a check point 0.59 m off where the GPS held 0.20 m.)"""
     k = len(used)
     src = np.array([x for _, x in used]).reshape(-1, 3)
     tgt = np.array([p.xyz for p, _ in used]).reshape(-1, 3)
