@@ -127,10 +127,9 @@ def test_every_stage_command_reads_its_project_toml_section(tmp_path, capsys):
         assert f"unknown setting {section}.{key}" in err and err.count("\n") == 1, err
     p.config["export_dsm"] = {"fill_holes": 0, "cog": True}
     p.save()
-    from gtkit.commands.export import _settings
-    from gtkit.export.dsm import DsmSettings
+    from gtkit.stages import settings_for
 
-    s = _settings(DsmSettings(), "export_dsm", root, {"resolution": 2.0, "cog": None, "fill_holes": None})
+    s = settings_for("export_dsm", Project.load(root), {"resolution": 2.0, "cog": None, "fill_holes": None})
     assert (s.resolution, s.cog, s.fill_holes) == (2.0, True, 0)
 
 
