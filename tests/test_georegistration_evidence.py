@@ -206,3 +206,21 @@ def test_pose_prior_ba_keeps_surveyed_positions(tiny_sample, tmp_path):
     r = run_reference(root)
     h = r["held_by_positions"]   # blocks.py undoes a BA that moves the block off ("reverted"): still a failure here
     assert h["applied"] and h["residual_median_m"]["after"] <= h["residual_median_m"]["before"] + 0.01, h
+
+
+def test_click_threshold_follows_the_clicks_and_the_photo_size():
+    """Clicks 5 px off (1 sigma) on 3072 x 2048 photos: a fixed 4 px throws away good clicks (down to
+    2 of 8 per GCP) and doubles the GCP error; the threshold from the clicks' own consistency (3
+    robust sigmas, >= 4 px per 2,000 px of diagonal) keeps every click and places the block closer."""
+    out = {}
+    for thr in (4.0, None):
+        rec, pos, acc, truth = level_block(0)
+        gcps = level_block_gcps(truth, n_gcps=8, click_px=5.0)
+        r = georegister(rec, {}, gcps, GeoregisterSettings(use="gcp", gcp_max_px=thr), None, None)
+        kept = [v["clicks_used"] / v["clicks_total"] for v in r["gcp_residuals"].values() if v["status"] == "ok"]
+        out[thr] = (r, min(kept), _errors(rec, truth))
+    r, kept, (rot, d) = out[None]
+    assert r["gcp_click_threshold"]["max_px"] > 4.0 * 3692 / 2000 and r["gcp_click_threshold"]["click_sigma_px"] > 3.0
+    assert kept == 1.0 and out[4.0][1] < 0.5
+    assert r["gcp_rmse_m"] < 0.7 * out[4.0][0]["gcp_rmse_m"], (r["gcp_rmse_m"], out[4.0][0]["gcp_rmse_m"])
+    assert rot < 1.0 and d < 0.1, (rot, d)
