@@ -609,7 +609,8 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         summary["georegistration"]["merged_models"] = kept
     geo = summary.get("georegistration", {})
     if (kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3
-            and geo.get("fit", {}).get("mode") == "gravity-held"):
+            and (geo.get("fit", {}).get("mode") == "gravity-held"
+                 or (geo.get("fit", {}).get("mode") == "combined" and (geo.get("gps_quality") or {}).get("bias_assumed")))):
         summary["held_by_positions"] = {"applied": False, "reason": "positions too coarse to hold the block's shape "
                                         "(its tilt is held by gravity)"}
     elif kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3:
