@@ -84,7 +84,7 @@ def test_georegistration_errors_name_the_gcps():
     from gtkit.sfm.georegister import GeoregisterSettings, georegister
 
     gcps = [GCP(f"g{k}", np.array([k * 10.0, 0.0, 0.0]), [GCPClick("reference/a.jpg", 10, 10)]) for k in range(3)]
-    with pytest.raises(RegistrationError, match=r"only 0 usable GCPs.*g0: fewer than 2 clicks.*g2"):
+    with pytest.raises(RegistrationError, match=r"only 0 usable GCPs.*no GCP has 2 clicks in this model's 0 photos \(3 GCPs\)"):
         georegister(pycolmap.Reconstruction(), {}, gcps, GeoregisterSettings(use="gcp"))
 
 
