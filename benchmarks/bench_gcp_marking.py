@@ -49,6 +49,7 @@ from gtkit.gcp.site import load_marking, photo_name, reference_photos  # noqa: E
 from gtkit.io.odm import read_gcp_list  # noqa: E402
 from gtkit.io.poses import read_intrinsics, read_poses  # noqa: E402
 from gtkit.project import Project  # noqa: E402
+from gtkit.stages import settings_for  # noqa: E402
 
 PER_GCP = 5
 SIGMA_CLICK = 0.5
@@ -76,7 +77,7 @@ def make_sites(work: Path, preset: str, seed: int, gps: str = "sample") -> dict[
                 apply_variant(d, gps, seed=seed)
             apply_gcp_points_variant(d, v)
             try:
-                run_reference(d)
+                run_reference(d, settings_for("sfm_reference", Project.load(d)))
             except GtkitError as e:
                 if "georegistration failed" not in str(e):
                     raise

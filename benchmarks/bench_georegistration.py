@@ -95,7 +95,9 @@ def sample_row(base: Path, work: Path, seed: int, name: str, prior_ba: bool) -> 
     from gtkit.errors import GtkitError
     from gtkit.evaluate.poses import block_frame_errors
     from gtkit.io.poses import read_poses
+    from gtkit.project import Project
     from gtkit.sfm.blocks import run_reference
+    from gtkit.stages import settings_for
     from gtkit.synth.variants import apply_variant
 
     proj = work / f"{name}_{seed}"
@@ -108,7 +110,7 @@ def sample_row(base: Path, work: Path, seed: int, name: str, prior_ba: bool) -> 
         (proj / "project.toml").write_text(t.rstrip("\n") + "\n\n[sfm]\nhold_by_positions = false\n")
     t0 = time.time()
     try:
-        r = run_reference(proj)
+        r = run_reference(proj, settings_for("sfm_reference", Project.load(proj)))
     except GtkitError as ex:
         b = json.loads((proj / "work/sfm_reference/block.json").read_text()) if (proj / "work/sfm_reference/block.json").is_file() else {}
         r = b or {"georegistration": {"error": str(ex)}}
@@ -118,7 +120,6 @@ def sample_row(base: Path, work: Path, seed: int, name: str, prior_ba: bool) -> 
     lever = None
     if (proj / "gcp_list.txt").is_file():
         from gtkit.io.odm import read_gcp_list
-        from gtkit.project import Project
 
         lever = lever_arm(read_gcp_list(proj / "gcp_list.txt", Project.load(proj).frame), read_poses(proj / "truth/poses.txt"))
     return {"variant": name, "seed": seed, "seconds": round(time.time() - t0, 1), "geo": geo, "errors": e, "lever": lever,

@@ -18,6 +18,7 @@ from gtkit.io.odm import GCP, GCPClick, read_gcp_list, write_gcp_list
 from gtkit.io.poses import read_intrinsics, read_poses
 from gtkit.project import Project
 from gtkit.synth.gcp_points_variant import apply_gcp_points_variant
+from conftest import stage_settings
 
 FRAME = GeoFrame("EPSG:32650", (241873.0, 3379486.0, 0.0))
 
@@ -101,7 +102,7 @@ def _site(tiny_sample, tmp_path, variant, checkpoint_every=0):
     shutil.copytree(tiny_sample[0], root, ignore=shutil.ignore_patterns("work", "reports", "exports"))
     apply_gcp_points_variant(root, variant, checkpoint_every)
     try:
-        run_reference(root)
+        run_reference(root, stage_settings("sfm_reference", root))
     except GtkitError as e:
         assert variant.endswith("no-gps") and "georegistration failed" in str(e)
     return root
@@ -164,7 +165,7 @@ def test_predictions_after_the_gps_fit_then_clicks_refit_and_check_points(tiny_s
     # gtkit sfm reads them: the check point stays out of the fit, the report lists both kinds
     from gtkit.sfm.blocks import run_reference
 
-    geo = run_reference(root, force=True)["georegistration"]
+    geo = run_reference(root, stage_settings("sfm_reference", root), force=True)["georegistration"]
     assert geo["n_gcp_in_fit"] == 3 and geo["n_checkpoints"] == 1 and not geo["gcp_residuals"]["gcp02"]["in_fit"]
     assert geo["gcp_residuals"]["gcp02"]["err_m"] < 0.35
     md = (root / "reports/reference.md").read_text()

@@ -17,6 +17,7 @@ from gtkit.sfm.gps_fit import altitude_drift_at, gravity_held_fit
 from gtkit.sfm.gravity import Up
 from gtkit.sfm.plausibility import check_block
 from gtkit.synth.variants import apply_variant
+from conftest import stage_settings
 
 
 def _lawnmower(rng, n_lines=6, per_line=12, spacing=25.0, height=80.0):
@@ -105,7 +106,7 @@ def test_consumer_block_right_side_up_and_a_tilted_fit_refused(tiny_sample, tmp_
     report says how it was fitted and what the GPS is worth. Forcing the free Sim(3) (the old way)
     gives a tilted block, which is refused with its cause (measured: 26 deg on seed 0)."""
     root = _consumer_copy(tiny_sample, tmp_path, "consumer-gps", "no-gcps")
-    r = run_reference(root)
+    r = run_reference(root, stage_settings("sfm_reference", root))
     geo = r["georegistration"]
     assert r["n_registered"] == r["n_images"]
     assert geo["fit"]["mode"] == "gravity-held" and geo["fit"]["tilt_from"] == "aerial prior"
@@ -126,7 +127,7 @@ def test_consumer_block_right_side_up_and_a_tilted_fit_refused(tiny_sample, tmp_
     from gtkit.errors import GtkitError
 
     with pytest.raises(GtkitError, match="implausible result|inliers"):
-        run_reference(root)
+        run_reference(root, stage_settings("sfm_reference", root))
     b = json.loads((root / "work/sfm_reference/block.json").read_text())
     assert "error" in b["georegistration"]
 
@@ -134,7 +135,7 @@ def test_consumer_block_right_side_up_and_a_tilted_fit_refused(tiny_sample, tmp_
 def test_an_upside_down_block_is_refused(tiny_sample, tmp_path):
     """A georegistered block turned upside down (as the hidden real site was): refused, one line."""
     root = _consumer_copy(tiny_sample, tmp_path, "no-gcps")
-    run_reference(root)
+    run_reference(root, stage_settings("sfm_reference", root))
     rec = pycolmap.Reconstruction(root / "work/sfm_reference/model")
     from gtkit.sfm.blocks import photo_metas
 

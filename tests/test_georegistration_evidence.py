@@ -19,6 +19,7 @@ from gtkit.sfm.georegister import GeoregisterSettings, georegister
 from gtkit.sfm.geometry import RegistrationError, model_cameras, model_poses
 from gtkit.sfm.plausibility import check_block
 from gtkit.synth.variants import apply_variant, level_block, level_block_gcps
+from conftest import stage_settings
 
 SLOW = os.environ.get("GTKIT_SLOW") == "1"
 
@@ -170,7 +171,7 @@ def test_facade_proxy_sample_is_placed_by_its_positions(tiny_sample, tmp_path):
     from gtkit.sfm.blocks import run_reference
 
     root = _copy(tiny_sample, tmp_path, "facade-proxy")
-    r = run_reference(root)   # defaults: the pose-prior BA after it is undone where it moves the block off
+    r = run_reference(root, stage_settings("sfm_reference", root))   # defaults: the pose-prior BA after it is undone where it moves the block off
     geo = r["georegistration"]
     assert "error" not in geo, geo
     assert geo["used"] == "gps" and geo["plausibility"]["capture"] == "level"
@@ -185,7 +186,7 @@ def test_half_scale_clicks_on_the_sample(tiny_sample, tmp_path):
     from gtkit.sfm.blocks import run_reference
 
     root = _copy(tiny_sample, tmp_path, "no-gps", "gcp-half")
-    r = run_reference(root)
+    r = run_reference(root, stage_settings("sfm_reference", root))
     geo = r["georegistration"]
     assert "error" not in geo, geo
     assert geo["gcp_click_scale"]["applied"] and geo["gcp_click_scale"]["factor"] == 2.0
@@ -203,7 +204,7 @@ def test_pose_prior_ba_keeps_surveyed_positions(tiny_sample, tmp_path):
     from gtkit.sfm.blocks import run_reference
 
     root = _copy(tiny_sample, tmp_path, "facade-proxy")
-    r = run_reference(root)
+    r = run_reference(root, stage_settings("sfm_reference", root))
     h = r["held_by_positions"]   # blocks.py undoes a BA that moves the block off ("reverted"): still a failure here
     assert h["applied"] and h["residual_median_m"]["after"] <= h["residual_median_m"]["before"] + 0.01, h
 

@@ -25,6 +25,7 @@ from gtkit.io.poses import read_intrinsics, read_poses
 from gtkit.project import Project
 from gtkit.sfm.georegister import GeoregisterSettings, georegister
 from gtkit.synth.gcp_points_variant import apply_gcp_points_variant
+from conftest import stage_settings
 
 ROOT = Path(__file__).resolve().parents[1]
 CLICK_SIGMA = 0.5     # the sample's GCP click noise (tiny preset: annotation.gcp_click_sigma_px)
@@ -39,7 +40,7 @@ def gcp_site(tiny_sample, tmp_path_factory):
     root = tmp_path_factory.mktemp("gcp") / "site"
     shutil.copytree(tiny_sample[0], root, ignore=shutil.ignore_patterns("work", "reports", "exports"))
     apply_gcp_points_variant(root, "gcp-points")
-    run_reference(root)
+    run_reference(root, stage_settings("sfm_reference", root))
     return root
 
 
@@ -294,7 +295,7 @@ def test_gcp_session_on_xvfb_without_gps(tiny_sample, xserver, tmp_path):
     shutil.copytree(tiny_sample[0], root, ignore=shutil.ignore_patterns("work", "reports", "exports"))
     apply_gcp_points_variant(root, "gcp-points-no-gps")
     with pytest.raises(GtkitError, match="georegistration failed"):
-        run_reference(root)
+        run_reference(root, stage_settings("sfm_reference", root))
     truth = Truth(root)
     per_gcp, n_gcp = 8, len(truth.xyz)
     rng = np.random.default_rng(11)

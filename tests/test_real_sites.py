@@ -24,6 +24,7 @@ from gtkit.sfm.blocks import SfmSettings, run_reference
 from gtkit.sfm.geometry import RegistrationError, robust_sim3
 from gtkit.sfm.similarity import lo_ransac_similarity, umeyama
 from gtkit.synth.variants import apply_variant
+from conftest import stage_settings
 
 
 def _variant(tiny_sample, tmp_path, *variants) -> Path:
@@ -178,7 +179,7 @@ def test_no_gps_gcps_at_one_height(tiny_sample, tmp_path):
     proj = Project.load(root)
     proj.config["sfm"] = {"matching": {"exhaustive_max_without_gps": 30, "retrieval_neighbors": 15}}
     proj.save()
-    r = run_reference(root)
+    r = run_reference(root, stage_settings("sfm_reference", root))
     assert r["n_registered"] / r["n_images"] >= 0.93 and r["n_models"] == 1
     assert r["pairings"] == ["retrieval"] and r["n_gps"] == 0 and r["n_pairs"] < 45 * 44 / 2
     geo = r["georegistration"]
@@ -197,7 +198,7 @@ def test_no_focal_self_calibrates_and_checkpoints_are_reported(tiny_sample, tmp_
     """No cameras.txt and no EXIF focal: focal and principal point are estimated; check points
     stay out of the fit and are reported apart."""
     root = _variant(tiny_sample, tmp_path, "no-focal", "checkpoints")
-    r = run_reference(root)
+    r = run_reference(root, stage_settings("sfm_reference", root))
     assert r["n_registered"] == r["n_images"]
     truth = read_intrinsics(root / "truth/intrinsics.txt")
     f_true = np.median([c.fx for n, c in truth.items() if n.startswith("reference/")])

@@ -27,8 +27,8 @@ def no_clicks(tiny_sample, tmp_path_factory):
     root = tmp_path_factory.mktemp("clickfree") / "site"
     shutil.copytree(tiny_sample[0], root, ignore=shutil.ignore_patterns("work", "reports", "exports"))
     (root / "tiepoints.json").unlink()
-    run_reference(root)
-    run_queries(root)
+    run_reference(root, stage_settings("sfm_reference", root))
+    run_queries(root, stage_settings("sfm_queries", root))
     return root
 
 
@@ -68,7 +68,7 @@ def test_a_sequence_that_cannot_be_placed_is_named_with_its_reason(no_clicks, tm
     shutil.copytree(no_clicks, root)
     for p in sorted((root / "images" / "queries" / "seq2").glob("*.jpg")):
         strip_metadata(p, gps=True, focal=False)
-    run_queries(root, sequences=["seq2"], force=True)
+    run_queries(root, stage_settings("sfm_queries", root), sequences=["seq2"], force=True)
     assert cli(["register", str(root)]) == 1
     out = capsys.readouterr().out
     res = json.loads((root / "work" / "register" / "registration.json").read_text())

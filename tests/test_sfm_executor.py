@@ -9,6 +9,7 @@ import pytest
 from gtkit.io.poses import read_poses
 from gtkit.localize.executors import ExecutorSettings
 from gtkit.sfm.blocks import SfmSettings, run_reference
+from conftest import stage_settings
 
 pytest.importorskip("dask.distributed")
 
@@ -91,7 +92,7 @@ def test_an_unknown_mapper_is_one_clear_error_before_any_work(tiny_sample, tmp_p
     proj.config.setdefault("sfm", {})["mapper"] = "glomap"
     proj.save()
     with pytest.raises(GtkitError, match="unknown sfm.mapper 'glomap' \\(choose from incremental, global, seeded, auto\\)"):
-        run_reference(root)
+        run_reference(root, stage_settings("sfm_reference", root))
     assert not (root / "work/sfm_reference/database.db").exists()
 
 

@@ -15,6 +15,7 @@ from gtkit.sfm.blocks import (REFERENCE_STAGE, choose_mapper, gps_positions_and_
                               run_reference)
 from gtkit.sfm.seeded import seeding_check
 from gtkit.synth.variants import _rewrite, apply_variant
+from conftest import stage_settings
 
 MOVED = "reference/R01_003_N.jpg"
 
@@ -43,7 +44,7 @@ def seeded_with_a_wrong_prior(tiny_sample, tmp_path_factory):
     m = read_photo_meta(p)
     lon, lat, _ = frame.local_to_wgs84(frame.wgs84_to_local(m.lon, m.lat, m.altitude) + np.array([30.0, 0.0, 0.0]))
     _rewrite(p, gps=(lat, lon, m.gps_alt))
-    return root, run_reference(root)
+    return root, run_reference(root, stage_settings("sfm_reference", root))
 
 
 def test_auto_seeds_the_rtk_sample_and_maps_consumer_gps_incrementally(tiny_sample, tmp_path):

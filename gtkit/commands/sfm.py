@@ -46,6 +46,10 @@ def _print_reference(r: dict) -> None:
             f"RMSE {geo.get('rmse_inliers_m', float('nan')):.3f} m")
     if fit.get("mode") == "gravity-held":
         line += f"; tilt held by gravity ({fit.get('tilt_from')})"
+    elif fit.get("mode") == "combined":
+        line += f"; tilt from the positions and gravity together ({fit.get('tilt_from')})"
+    if (geo.get("gcp_click_scale") or {}).get("line"):
+        line += f"; GCP clicks: {geo['gcp_click_scale']['line']}"
     if geo.get("gcp_median_err_m") is not None:
         line += f"; GCP median error {geo['gcp_median_err_m']:.3f} m"
     if geo.get("checkpoint_median_err_m") is not None:

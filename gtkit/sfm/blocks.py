@@ -4,6 +4,10 @@ and/or GCPs) and one block per query sequence (wide photos; sequential + spatial
 Outputs (``work/sfm_reference/``, ``work/sfm_queries/<seq>/``): ``database.db``, ``model/``
 (pycolmap reconstruction), ``poses.txt`` + ``intrinsics.txt`` (gtkit.io.poses formats, project
 world frame), ``block.json`` (georegistration, GCP residuals, unregistered images and why).
+
+Size: one module for both kinds of block and their settings (``SfmSettings``, read by every stage
+that lists photos); its steps live beside it (database, pairs, seeded, georegister, prior_ba), and
+``build_block`` (over 150 lines, to be split into features / pairs / mapper / georegistration) ties them.
 """
 from __future__ import annotations
 
@@ -25,7 +29,6 @@ from ..project import (Project, cpu_seconds, file_fingerprint, mark_stage_done, 
                        stage_done, start_stage_clock)
 from . import quiet_colmap
 from ..progress import progress_bar
-from ..settings import resolve
 from .database import (CameraGroup, FeatureSettings, MatchSettings, build_database, failure_reason,
                        image_diagnostics, match_pairs, read_descriptors)
 from .geometry import RegistrationError, model_cameras, model_poses
@@ -687,12 +690,11 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     return BlockResult(rec, summary)
 
 
-def run_reference(project: Project | str | Path, settings: SfmSettings | None = None, force: bool = False,
+def run_reference(project: Project | str | Path, settings: SfmSettings, force: bool = False,
                   executor=None) -> dict:
     """``gtkit sfm DIR --block reference``. ``executor``: see :func:`build_block`."""
     quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
-    settings = settings or resolve(SfmSettings(), "sfm", project)
     P = project.paths
     names = list_images(P.reference_images, P.images)
     if not names:
@@ -715,7 +717,7 @@ def run_reference(project: Project | str | Path, settings: SfmSettings | None = 
     return res.summary
 
 
-def run_queries(project: Project | str | Path, settings: SfmSettings | None = None, force: bool = False,
+def run_queries(project: Project | str | Path, settings: SfmSettings, force: bool = False,
                 sequences: list[str] | None = None, executor=None) -> dict:
     """``gtkit sfm DIR --block queries``: one model per sequence. A failed sequence is reported
     with its reason; the others still finish."""
@@ -723,7 +725,6 @@ def run_queries(project: Project | str | Path, settings: SfmSettings | None = No
 
     quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
-    settings = settings or resolve(SfmSettings(), "sfm", project)
     P = project.paths
     seqs = sequences or P.query_sequences()
     if not seqs:

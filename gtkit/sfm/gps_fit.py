@@ -27,6 +27,7 @@ import pycolmap
 
 from .geometry import RegistrationError
 from .gravity import Up, rotation_to_z
+from ..altitude_drift import altitude_drift_at  # noqa: F401  (a photo's drift from this fit's record)
 
 RAYLEIGH_MEDIAN = 1.1774   # median of a 2D Gaussian's distance, in sigmas per axis
 RAYLEIGH_99 = 3.035        # its 99 % quantile
@@ -229,18 +230,3 @@ def gravity_held_fit(names: list[str], src: np.ndarray, tgt: np.ndarray, times: 
                            float(np.median(acc)) if np.any(acc > 0) else None),
     }
     return GpsFit(sim, inl, r_h, res_v_final, record)
-
-
-def altitude_drift_at(fit: dict | None, t: float | None, margin: float = 0.1) -> float | None:
-    """How far the GPS altitude of a photo taken at ``t`` (EXIF capture time, seconds) is off by the
-    drift that the reference flight's gravity-held fit (``fit``, its record) found: subtract it from
-    the photo's GPS altitude. None where no drift was fitted or ``t`` lies outside the flight (by more
-    than ``margin`` of its length): another flight's altitudes drift their own way."""
-    if not fit or t is None or not fit.get("altitude_drift_m") or not fit.get("flight_seconds") \
-            or fit.get("drift_time_start_s") is None:
-        return None
-    span = float(fit["flight_seconds"])
-    tau = (float(t) - float(fit["drift_time_start_s"])) / span
-    if not -margin <= tau <= 1.0 + margin:
-        return None
-    return float(fit["altitude_drift_m"]) * (tau - float(fit.get("drift_tau_mid", 0.5)))

@@ -8,7 +8,8 @@ from ..io.atomic import write_json, write_text
 from ..project import Paths
 
 GEO_KEYS = ("used", "fitted_to", "fit", "gps_quality", "plausibility", "n_inliers", "n_gps", "n_gcp_in_fit", "n_checkpoints", "gcp_threshold_m",
-            "gcp_median_err_m", "gcp_rmse_m", "checkpoint_median_err_m", "checkpoint_rmse_m", "outliers", "error")
+            "gcp_median_err_m", "gcp_rmse_m", "checkpoint_median_err_m", "checkpoint_rmse_m", "outliers", "error",
+            "gcp_click_scale", "gcp_click_threshold")
 
 
 def reference_report(summary: dict) -> dict:
@@ -49,6 +50,8 @@ def _fit_lines(fit: dict, q: dict | None, plaus: dict | None) -> list[str]:
     if fit.get("mode") == "gravity-held":
         out.append(f"- tilt held by gravity ({fit.get('tilt_from')}, spread {_f(fit['up']['spread_deg'], 2)} deg over "
                    f"{fit['up']['n_photos']} photos); heading, scale and position from the GPS: {fit.get('why')}")
+    elif fit.get("mode") == "combined":
+        out.append(f"- tilt from the positions and gravity together ({fit.get('tilt_from')}): {fit.get('why')}")
     elif fit.get("mode") == "free":
         out.append(f"- free Sim(3): {fit.get('why')}")
     if q:
@@ -64,6 +67,8 @@ def _fit_lines(fit: dict, q: dict | None, plaus: dict | None) -> list[str]:
                       f"{_f(q.get('scatter_h_m'), 2)} / {_f(q.get('scatter_v_m'), 2)} m; a common GPS bias cannot be "
                       "measured from the photos and is assumed: give GCPs, or geo.txt with accuracy columns, to claim more)"
                       if q.get("bias_assumed") else ""))
+    if plaus and plaus.get("aerial_checks"):
+        out.append(f"- aerial checks (cameras above the ground, photos looking down): {plaus['aerial_checks']}")
     if plaus:
         out.append(f"- plausibility: cameras above what they see in {_f(100 * (plaus.get('share_above_their_points') or 0), 0)} % "
                    f"of the photos, {_f(plaus.get('median_height_above_points_m'), 1)} m above it; median viewing direction "
@@ -143,6 +148,8 @@ def write_reference_report(paths: Paths, summary: dict) -> dict:
         lines += [f"- fitted to: {g.get('fitted_to') or g.get('used')} ({g.get('n_gps')} GPS positions and "
                   f"{g.get('n_gcp_in_fit')} GCPs given, {g.get('n_checkpoints')} check points); RMSE {_f(g.get('rmse_m'))} m"]
         lines += _fit_lines(g.get("fit") or {}, g.get("gps_quality"), g.get("plausibility"))
+        if (g.get("gcp_click_scale") or {}).get("line"):
+            lines.append(f"- GCP clicks: {g['gcp_click_scale']['line']}")
         if g.get("n_gcp_in_fit") or g.get("n_checkpoints"):
             lines.append(f"- GCP residual median {_f(g.get('gcp_median_err_m'))} m, RMSE {_f(g.get('gcp_rmse_m'))} m; "
                          f"check points median {_f(g.get('checkpoint_median_err_m'))} m")

@@ -41,6 +41,8 @@ no focal length anywhere, GCPs surveyed without heights. Each edits a copy in pl
 - ``gcp-half``: every GCP click in ``gcp_list.txt`` halved, as when the GCPs were clicked on
   half-size copies of the photos (web GCP editors); combine with ``no-gps`` so the GCPs carry the
   georegistration.
+- ``gcp-points`` / ``gcp-points-no-gps``: the GCPs' surveyed coordinates only (no clicks), with or
+  without the photos' GPS (:mod:`gtkit.synth.gcp_points_variant`, for marking GCPs in gtkit).
 """
 from __future__ import annotations
 
@@ -54,7 +56,8 @@ import numpy as np
 from PIL import Image
 
 VARIANTS = ("no-gps", "no-focal", "flat-gcps", "checkpoints", "survey-geo", "no-gcps", "no-attitude", "consumer-gps",
-            "query-gps-5", "query-gps-15", "nadir-heldout", "facade-proxy", "rtk-few", "gcp-half")
+            "query-gps-5", "query-gps-15", "nadir-heldout", "facade-proxy", "rtk-few", "gcp-half",
+            "gcp-points", "gcp-points-no-gps")   # the last two: gtkit.synth.gcp_points_variant
 # (which photos, horizontal sigma m, altitude offset sigma m, altitude drift over the flight m, strip XMP)
 _GPS_VARIANTS = {"consumer-gps": ("all", 10.0, 10.0, 60.0, True),
                  "query-gps-5": ("queries", 5.0, 5.0, 5.0, False),
@@ -250,6 +253,10 @@ def apply_variant(root: str | Path, name: str, seed: int = 0) -> None:
                 r[3], r[4] = f"{float(r[3]) / 2:.2f}", f"{float(r[4]) / 2:.2f}"
             out.append(" ".join(r))
         f.write_text("\n".join(out) + "\n")
+    elif name in ("gcp-points", "gcp-points-no-gps"):
+        from .gcp_points_variant import apply_gcp_points_variant
+
+        apply_gcp_points_variant(root, name)
     else:
         raise ValueError(f"unknown sample variant {name!r} (known: {', '.join(VARIANTS)})")
 
