@@ -1,0 +1,208 @@
+"""The reference block the query sequences are placed in, as the stage uses it: its model, poses and
+features (read once, when first needed), and a query photo matched to its 3D points around the poses
+the photo's metadata claims (for a photo its sequence's SfM left out, and for a sequence placed
+without clicks)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ...camera import Camera
+from ...errors import GtkitError
+from ...io.exif import prior_pose, read_photo_meta
+from ...pose import Pose
+from ...project import Project
+from ..blocks import QUERIES_STAGE
+from ..crossmatch import ReferencePoints, match_photo, match_photo_wide, photo_features
+from ..geometry import model_cameras, model_poses
+from ..resect import candidate_priors
+from .bootstrap import Bootstrap, bootstrap_sequence
+from .clicked import _place
+from .settings import RegisterSettings
+
+
+def _block_georegistered(block_json: Path) -> bool:
+    """Whether a query block's SfM was placed in the world by its photos' GPS (its record says so)."""
+    if not block_json.is_file():
+        return False
+    b = json.loads(block_json.read_text())
+    return b.get("frame") == "project world frame" and "error" not in (b.get("georegistration") or {})
+
+
+class ReferenceBlock:
+    """The reference model (``ref_dir``) and its feature database (``ref_db``), with the project's
+    photos and the stage's settings."""
+
+    def __init__(self, project: Project, ref_dir: Path, ref_db: Path, settings: RegisterSettings):
+        self.project, self.P, self.settings = project, project.paths, settings
+        self.rec = pycolmap.Reconstruction(ref_dir)
+        self.poses, self.cams = model_poses(self.rec), model_cameras(self.rec)
+        self.db = ref_db
+        self._points: ReferencePoints | None = None
+
+    @property
+    def cache(self) -> dict:
+        """Its poses and cameras, as :func:`gtkit.sfm.register.clicked.register_sequence` takes them."""
+        return {"poses": self.poses, "cams": self.cams}
+
+    def points(self) -> ReferencePoints:
+        """Its 3D points with their descriptors, read once, when first needed."""
+        if self._points is None:
+            self._points = ReferencePoints(self.rec, self.db, self.settings.cross.descriptors_per_point)
+        return self._points
+
+    @property
+    def points_read(self) -> ReferencePoints | None:
+        """Its points where already read, else None."""
+        return self._points
+
+    def place_clicks(self, obs) -> np.ndarray | None:
+        """A tie point's position from its clicks in the reference photos (None where they do not place it)."""
+        return _place(obs, self.poses, self.cams, self.rec, self.settings.tie_max_px)[0]
+
+    def gps_centre(self, name: str) -> np.ndarray | None:
+        """The photo's GPS position in the project frame (EXIF GPS + altitude), None without one."""
+        try:
+            m = read_photo_meta(self.P.images / name)
+        except GtkitError:
+            return None
+        if not m.has_gps or m.altitude is None:
+            return None
+        return self.project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
+
+    def neighbour_priors(self, name: str, k: int = 2) -> list[Pose]:
+        """Poses at the photo's GPS position with the attitude of the nearest reference photos (a photo
+        held out of the reference flight looks the way its neighbours do), at its GPS height and at
+        theirs (consumer altitudes drift)."""
+        C = self.gps_centre(name)
+        if C is None:
+            return []
+        refs = sorted(self.poses.values(), key=lambda q: float(np.linalg.norm(q.center[:2] - C[:2])))[:k]
+        out = []
+        for q in refs:
+            out.append(Pose.from_center(q.R, C))
+            out.append(Pose.from_center(q.R, np.array([C[0], C[1], q.center[2]])))
+        return out
+
+    def solo_block(self, seq: str) -> pycolmap.Reconstruction | None:
+        """A sequence whose SfM made no model: an empty block holding its camera (gtkit.queries'
+        resolution: the reference block's calibration of the same camera, else EXIF), to which its
+        photos are added one by one as they are resected from automatic matches."""
+        from ...queries import query_cameras, query_photos
+
+        names = query_photos(self.project, seq)
+        if not names or not (self.P.stage(QUERIES_STAGE) / seq / "database.db").is_file():
+            return None
+        try:
+            cams = query_cameras(self.project, names)
+        except GtkitError:
+            return None
+        rec = pycolmap.Reconstruction()
+        c = cams[names[0]].camera.to_pycolmap()
+        c.camera_id = 1
+        rec.add_camera_with_trivial_rig(c)
+        return rec
+
+    def left_out_matcher(self, seq: str):
+        """``match(name, qrec) -> (Pose | None, n matches, reason)``: a photo of ``seq`` its SfM left out,
+        resected from automatic matches to the reference points."""
+        return lambda name, qrec: self.match_left_out(seq, name, qrec)
+
+    def match_left_out(self, seq: str, name: str, qrec: pycolmap.Reconstruction):
+        """A left-out photo of ``seq`` resected from automatic matches to the reference points."""
+        settings, P = self.settings, self.P
+        if not settings.cross.enabled or not self.db.is_file():
+            return None, 0, "automatic matching is off or the reference database is missing"
+        priors = candidate_priors(name, qrec, lambda n: prior_pose(P.images / n, self.project.frame))
+        # its nearest registered neighbours' poses (in flight order), for a wider search
+        order = sorted({im.name for im in qrec.images.values() if im.has_pose} | {name})
+        k = order.index(name)
+        near = [Pose.from_pycolmap(qrec.find_image_with_name(n).cam_from_world())
+                for n in sorted((n for n in order if n != name), key=lambda m: abs(order.index(m) - k))[:2]]
+        by_reference = self.neighbour_priors(name)
+        priors = priors + by_reference
+        if not priors and not near:
+            return None, 0, "no GPS to guide matching"
+        feats = photo_features(P.stage(QUERIES_STAGE) / seq / "database.db", name)
+        if feats is None:
+            return None, 0, "no features in its sequence's database"
+        cam = Camera.from_pycolmap(qrec.cameras[sorted(qrec.cameras)[0]])
+        found = [match_photo(p, cam, *feats, self.points(), settings.cross) for p in priors]
+        pose, rows, _ = max(found, key=lambda f: len(f[1])) if found else (None, [], [])
+        if pose is None and settings.bootstrap.enabled:   # a wider search around its own and its neighbours' poses
+            guides = priors[:1] + near + [q for q in by_reference if q is not priors[0]]
+            pose, rows = self._match_wider(guides, cam, feats)
+        if pose is None:
+            return None, 0, (f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
+                             "points around its metadata pose" + (" or its neighbours' poses" if near else ""))
+        return pose, len(rows), ""
+
+    def _match_wider(self, guides: list[Pose], cam: Camera, feats):
+        """(pose, matched rows) of the best match around ``guides``, wider and wider, at last over the
+        whole image: a low photo under consumer GPS and without attitude is hundreds of pixels off, or
+        turned, from its guides (Brighton at 35 m with ~10 m GPS: found only with the whole image)."""
+        settings = self.settings
+        pose, rows = None, []
+        r0 = settings.bootstrap.radius_px
+        for radius in (r0, 4 * r0, max(cam.width, cam.height)):
+            found = [(g, match_photo_wide(g, cam, *feats, self.points(), settings.cross, radius))
+                     for g in guides]
+            found = [f for g, f in found if f[0] is not None
+                     and np.linalg.norm(f[0].center - g.center) <= settings.bootstrap.max_offset_m]
+            if found:
+                pose, rows, _ = max(found, key=lambda f: len(f[1]))
+                break
+        return pose, rows
+
+    def place_without_clicks(self, seq: str, qrec: pycolmap.Reconstruction) -> Bootstrap:
+        """The sequence placed by its photos' automatic matches (no clicks needed)."""
+        settings, P = self.settings, self.P
+        if not settings.bootstrap.enabled:
+            return Bootstrap(None, "placing sequences by automatic matches is off ([register.bootstrap] enabled)", {})
+        if not settings.cross.enabled or not self.db.is_file():
+            return Bootstrap(None, "automatic matching is off or the reference database is missing", {})
+        sdir = P.stage(QUERIES_STAGE) / seq
+        db = sdir / "database.db"
+        if not db.is_file():
+            return Bootstrap(None, "its sequence's feature database is missing", {})
+        georegistered = _block_georegistered(sdir / "block.json")
+        cams = model_cameras(qrec)
+
+        def priors(name):
+            out = []
+            meta = prior_pose(P.images / name, self.project.frame)
+            if meta is not None:
+                out.append(("metadata", meta))
+            if georegistered:
+                out.append(("block GPS", Pose.from_pycolmap(qrec.find_image_with_name(name).cam_from_world())))
+            return out
+
+        features: dict = {}
+
+        def match(name, prior, wider=True):
+            if name not in features:
+                features[name] = photo_features(db, name)
+            feats = features[name]
+            if feats is None:
+                return None, np.zeros((0, 3)), np.zeros(0, int)
+            ref = self.points()
+            radii = (settings.bootstrap.radius_px, 2 * settings.bootstrap.radius_px)
+            for radius in radii if wider else radii[:1]:   # then a wider search
+                pose, rows, kk = match_photo_wide(prior, cams[name], *feats, ref, settings.cross, radius)
+                if pose is not None:
+                    break
+            return pose, ref.xyz[rows], kk
+
+        return bootstrap_sequence(qrec, priors, match, settings, self.attitude_search)
+
+    def attitude_search(self, name: str) -> list[tuple[str, Pose]]:
+        """Poses at the photo's GPS position with a grid of attitudes (no gimbal tags), labelled."""
+        C = self.gps_centre(name)
+        if C is None:
+            return []
+        b = self.settings.bootstrap
+        return [(f"GPS, attitude searched (yaw {yaw:.0f}, pitch {pitch:.0f})", Pose.from_dji(yaw, pitch, 0.0, C))
+                for pitch in b.search_pitches_deg for yaw in np.arange(0.0, 360.0, b.search_yaw_step_deg)]

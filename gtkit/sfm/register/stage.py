@@ -1,0 +1,144 @@
+"""``gtkit register DIR``: the stage. Each query sequence placed in the reference frame
+(:mod:`.sequences`), automatic tie points found between the placed query photos and the reference
+photos, the joint adjustment choosing which of them to keep (:mod:`.tie_bias`, :mod:`.joint`), each
+photo's uncertainty (:mod:`.uncertainty`) and the record (:mod:`.record`)."""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import GtkitError
+from ...io.tiepoints import read_tiepoints
+from ...project import Project, file_fingerprint, stage_done, start_stage_clock
+from .. import quiet_colmap
+from ..blocks import QUERIES_STAGE, REFERENCE_STAGE
+from ..crossmatch import cross_matches, reference_point_of
+from ..extend_reference import extension_ties
+from ..geometry import model_cameras, model_poses
+from ..tie_surface import smooth_surface_filter
+from .record import _count_query_images, joint_record, tie_table, write_empty, write_record
+from .reference import ReferenceBlock
+from .sequences import Placed, place_sequences
+from .settings import STAGE, RegisterSettings, check_settings
+from .tie_bias import _adjust_choosing_ties
+from .uncertainty import query_poses
+
+log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
+
+
+def _reference_model(paths) -> Path | None:
+    """The project's reference model, or None before one is built or imported."""
+    from ...export.sources import reference_model
+
+    try:
+        return reference_model(paths)
+    except GtkitError:
+        return None
+
+
+def _inputs(P, ref_dir: Path, seq_dirs: dict[str, Path], model: Path | None) -> dict:
+    """The fingerprints of what the stage reads (its record is reused while they and the settings hold)."""
+    inputs = {"tiepoints": file_fingerprint(P.tiepoints),
+              "reference": file_fingerprint(ref_dir / "images.bin"),
+              "queries": {s: file_fingerprint(d / "images.bin") for s, d in seq_dirs.items()}}
+    if model is not None:   # the automatic ties it keeps depend on it
+        from ...export.sources import input_fingerprint_paths
+        inputs["model"] = [file_fingerprint(f) for f in input_fingerprint_paths(model)]
+    return inputs
+
+
+def run(project: Project | str | Path, settings: RegisterSettings, force: bool = False) -> dict:
+    """``gtkit register DIR``: pseudo-GT poses of every registered query photo."""
+    quiet_colmap()
+    project = project if isinstance(project, Project) else Project.load(project)
+    P = project.paths
+    check_settings(settings, project.paths.root)
+    out = P.stage(STAGE)
+    ref_dir = P.stage(REFERENCE_STAGE) / "model"
+    if not ref_dir.is_dir():
+        raise GtkitError("reference block missing: run `gtkit sfm DIR --block reference` first", ref_dir)
+    seq_dirs = {s: P.stage(QUERIES_STAGE) / s / "model" for s in P.query_sequences()}
+    model = _reference_model(P) if settings.cross.enabled and settings.smooth_surface.enabled else None
+    inputs = _inputs(P, ref_dir, seq_dirs, model)
+    if not force and stage_done(out, settings, inputs):
+        return json.loads((out / "registration.json").read_text())
+    start_stage_clock(out)   # (also under --force): its log goes to work/register/log.txt
+    t0 = time.time()
+    tiepoints = read_tiepoints(P.tiepoints) if P.tiepoints.is_file() else []   # no file: no clicks
+    ref = ReferenceBlock(project, ref_dir, P.stage(REFERENCE_STAGE) / "database.db", settings)
+    placed = place_sequences(ref, seq_dirs, tiepoints)
+    t_sim = time.time()
+    result = {"sequences": placed.report, "n_registered": 0, "n_images": _count_query_images(P, seq_dirs),
+              "images": {}}
+    out.mkdir(parents=True, exist_ok=True)
+    if not placed.blocks:
+        return write_empty(out, result, settings, inputs)
+    # every click of every tie point that touches a registered sequence
+    prefixes = tuple(f"queries/{s}/" for s in placed.blocks)
+    clicks = {tp.id: {o.image: (o.x, o.y) for o in tp.observations}
+              for tp in tiepoints if any(o.image.startswith(prefixes) for o in tp.observations)}
+    return _adjust_and_record(project, ref, placed, clicks, model, out, result, inputs, (t0, t_sim))
+
+
+def _automatic_ties(project: Project, ref: ReferenceBlock, placed: Placed, model: Path | None, out: Path
+                    ) -> tuple[dict, set[str], int]:
+    """(automatic tie points: id -> {image: (x, y)}, those on rough model surface, how many the cross
+    matching found): SIFT matches between the placed query photos and the reference photos, and the
+    photos resected on their own joined to the reference block (``[register.extend]``)."""
+    P, settings = project.paths, ref.settings
+    qp, qc = {}, {}
+    for rec_q in placed.blocks.values():
+        qp.update(model_poses(rec_q))
+        qc.update(model_cameras(rec_q))
+    auto = cross_matches(qp, qc, [P.stage(QUERIES_STAGE) / sq / "database.db" for sq in placed.blocks], ref.rec,
+                         ref.db, settings.cross, ref=ref.points_read)
+    n_auto_found = len(auto)
+    smooth = smooth_surface_filter(model, project.frame, settings.smooth_surface) if auto else None
+    rough: set[str] = set()
+    if smooth is not None:
+        ids = sorted(auto)
+        keep = smooth(np.array([ref.rec.points3D[reference_point_of(t)].xyz for t in ids]))
+        rough = {t for t, k in zip(ids, keep) if not k}
+        log.info("automatic tie points: %d of %d on smooth model surface", len(auto) - len(rough), n_auto_found)
+    solo = sorted(n for n, r in placed.resected.items() if r.get("resected") and n in qp)
+    if solo and settings.extend.enabled:
+        ext, ext_rec = extension_ties(
+            ref.rec, ref.db, {n: (qp[n], qc[n], P.stage(QUERIES_STAGE) / n.split("/")[1] / "database.db") for n in solo},
+            P.images, out / "extend", settings.extend, num_threads=settings.num_threads)
+        for n, r in ext_rec.items():
+            placed.resected[n]["extended"] = r
+        auto.update(ext)
+    return auto, rough, n_auto_found
+
+
+def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, clicks: dict, model: Path | None,
+                       out: Path, result: dict, inputs: dict, times: tuple[float, float]) -> dict:
+    """The joint adjustment of the placed sequences with ``clicks`` (every click of every tie point
+    touching them) and the automatic tie points, each photo's uncertainty, and the record written."""
+    settings, blocks = ref.settings, placed.blocks
+    t0, t_sim = times
+    prefixes = tuple(f"queries/{s}/" for s in blocks)
+    t_cm = time.time()
+    auto, rough, n_auto_found = _automatic_ties(project, ref, placed, model, out)
+    clicks.update(auto)
+    t_cm = time.time() - t_cm
+    j, summary, cov, dropped, auto_choice = _adjust_choosing_ties(ref.rec, blocks, placed.statuses, clicks, set(auto),
+                                                                 rough, settings)
+    auto = {t: v for t, v in auto.items() if t in j.clicks}
+    # the sequences whose automatic ties off smooth surface were dropped
+    smooth_only = (sorted(blocks) if rough and settings.smooth_surface.choose == "smooth"
+                   else sorted(q for q, c in auto_choice.items() if c["smooth_only"]))
+    t_ba = time.time()
+    swung = set(blocks) if settings.systematic_swing_where == "all" else set(smooth_only)
+    poses, cams, covs, per_image, floors = query_poses(j, cov, settings.systematic_swing_px, swung, placed.resected)
+    tie_rows, bad = tie_table(j, clicks, placed.statuses, dropped, placed.report, prefixes)
+    for seq in blocks:
+        placed.report[seq]["n_tiepoints_final_ba"] = sum(1 for r in tie_rows.values()
+                                                         if r["sequence"] == seq and r["in_final_ba"])
+    result.update(joint_record(j, summary, per_image, tie_rows, bad, auto, n_auto_found, smooth_only, auto_choice,
+                               {"sim3": t_sim - t0, "cross_matching": t_cm, "joint_ba": t_ba - t_sim - t_cm}))
+    return write_record(out, project, j, cov, ref.rec, poses, cams, covs, floors, result, settings, inputs)

@@ -1,0 +1,130 @@
+"""The tie-bias test (``[register.smooth_surface]``): automatic tie points on rough model surface
+(tree canopies, lit by another sun in the query and the reference photos) are kept for a sequence
+only where the solution with them and the one with smooth-surface ties alone agree within what
+their uncertainties allow (:func:`choose_smooth`, a Hausman test)."""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ...pose import Pose
+from .joint import Joint, _adjust, _median_depth
+from .settings import RegisterSettings
+from .uncertainty import _ba_pose, _position_sigma
+
+log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
+
+
+def _without(clicks: dict, ties: set[str], seqs: set[str]) -> dict:
+    """``clicks`` with the given ties' clicks in photos of ``seqs`` removed (a tie left with no query
+    click is dropped)."""
+    prefixes = tuple(f"queries/{q}/" for q in seqs)
+    out = {}
+    for tid, obs in clicks.items():
+        if tid in ties:
+            obs = {n: xy for n, xy in obs.items() if not n.startswith(prefixes)}
+            if not any(n.startswith("queries/") for n in obs):
+                continue
+        out[tid] = obs
+    return out
+
+
+def _solution(j: Joint, cov) -> dict[str, tuple[Pose, float]]:
+    """Query photo -> (its pose with the BA's covariance, the median depth of the points it sees)."""
+    out = {}
+    for iid in j.rec.reg_image_ids():
+        if iid in j.ref_ids:
+            continue
+        out[j.rec.images[iid].name] = (_ba_pose(j.rec, cov, iid), _median_depth(j.rec, j.rec.images[iid]))
+    return out
+
+
+def solution_shift(a: tuple[Pose, float], s: tuple[Pose, float], on: str) -> tuple[float, float | None, float | None]:
+    """How far one photo moved between two solutions ``a`` and ``s`` (each: pose with covariance,
+    median depth), and each solution's 1-sigma of that quantity (None without a covariance):
+    - ``"centre"``: the camera centre;
+    - ``"footprint"``: what the camera sees, the ground point on its optical axis at its median
+      depth (fixed in the world by solution ``a``) in the camera's frame. A camera that swings about
+      the ground it sees (rotation and position trading off, a mode the photo's own rays barely
+      hold) moves its centre but not this; biased ties, which shift the image, move both."""
+    (pa, depth), (ps, _) = a, s
+    if on == "centre":
+        return float(np.linalg.norm(pa.center - ps.center)), _position_sigma(pa), _position_sigma(ps)
+    X = pa.center + pa.R.T @ np.array([0.0, 0.0, depth])
+
+    def sigma(p: Pose) -> float | None:
+        if p.covariance is None:
+            return None
+        J = p.point_jacobian(X)
+        return float(np.sqrt(np.trace(J @ p.covariance @ J.T)))
+
+    return float(np.linalg.norm(pa.transform(X[None])[0] - ps.transform(X[None])[0])), sigma(pa), sigma(ps)
+
+
+def choose_smooth(all_ties: dict, smooth_only: dict, factor: float, on: str = "both") -> dict[str, dict]:
+    """Per sequence, whether its rough-surface automatic ties are biased: the two solutions (all ties,
+    smooth-surface ties only) differ by more than ``factor`` x the spread their difference would have
+    if both were unbiased, sqrt(sigma_smooth^2 - sigma_all^2) (a Hausman test; medians over the
+    sequence's photos) in what ``on`` measures (:func:`solution_shift`: "centre" or "footprint"), or
+    in both (``"both"``: biased ties move the camera and its view; a camera swinging about its view
+    moves only the first). Inputs: photo -> (pose with covariance, median depth) of each solution."""
+    if on == "both":
+        c, f = choose_smooth(all_ties, smooth_only, factor, "centre"), choose_smooth(all_ties, smooth_only, factor, "footprint")
+        return {q: {**f[q], "smooth_only": c[q]["smooth_only"] and f[q]["smooth_only"], "on": "both",
+                    "centre_shift_m": c[q]["shift_m"], "centre_limit_m": c[q]["limit_m"]} for q in f}
+    seqs: dict[str, list[str]] = {}
+    for n in all_ties:
+        if n in smooth_only:
+            seqs.setdefault(n.split("/")[1], []).append(n)
+    out = {}
+    for q, names in sorted(seqs.items()):
+        shifts = [solution_shift(all_ties[n], smooth_only[n], on) for n in names]
+        d = float(np.median([x[0] for x in shifts]))
+        sa = [x[1] for x in shifts if x[1] is not None]
+        ss = [x[2] for x in shifts if x[2] is not None]
+        if not sa or not ss:
+            out[q] = {"smooth_only": True, "shift_m": d, "limit_m": None, "on": on}
+            continue
+        spread = float(np.sqrt(max(np.median(ss) ** 2 - np.median(sa) ** 2, 0.0)))
+        out[q] = {"smooth_only": bool(d > factor * spread), "shift_m": d, "limit_m": factor * spread, "on": on}
+    return out
+
+
+def tie_test_words(c: dict) -> str:
+    """One sequence's smooth-surface test (a record of ``choose_smooth``, as in registration.json;
+    records without ``on`` predate the footprint test and compared centres) in words."""
+    def lim(v):
+        return "-" if v is None else f"{v:.3f}"
+    what = "centres" if c.get("on", "centre") == "centre" else "footprints"
+    words = f"the two solutions' {what} {c['shift_m']:.3f} m apart, limit {lim(c['limit_m'])} m"
+    if "centre_shift_m" in c:
+        words += f"; centres {c['centre_shift_m']:.3f} m apart, limit {lim(c['centre_limit_m'])} m"
+    return words
+
+
+def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str], rough: set[str],
+                          settings: RegisterSettings):
+    """The joint adjustment, with the automatic ties on rough model surface (``rough``) kept only for
+    the sequences where they are not biased (``choose_smooth``); ``rough`` empty: one adjustment."""
+    if not rough:
+        return (*_adjust(ref_rec, blocks, statuses, clicks, auto, settings), {})
+    mode = settings.smooth_surface.choose
+    smooth_clicks = _without(clicks, rough, set(blocks))
+    if mode == "smooth":
+        return (*_adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings), {})
+    a = _adjust(ref_rec, blocks, statuses, clicks, auto, settings)
+    s = _adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings)
+    choice = choose_smooth(_solution(a[0], a[2]), _solution(s[0], s[2]), settings.smooth_surface.test_factor,
+                           settings.smooth_surface.test_on)
+    picked = {q for q, c in choice.items() if c["smooth_only"]}
+    for q, c in choice.items():
+        log.info("sequence %s: %s (%s)", q, "automatic ties on smooth surface only" if c["smooth_only"]
+                 else "all automatic ties", tie_test_words(c))
+    if not picked:
+        return (*a, choice)
+    if picked >= set(choice):
+        return (*s, choice)
+    return (*_adjust(ref_rec, blocks, statuses, _without(clicks, rough, picked), auto, settings), choice)
+
+
