@@ -30,6 +30,7 @@ from gtkit.errors import GtkitError
 
 from .gcp_store import GcpStore
 from .image_view import ImageView
+from .page_layout import side_and_photo
 
 log = logging.getLogger(__name__)
 ROLE = Qt.ItemDataRole.UserRole
@@ -139,18 +140,7 @@ class GcpPage(QWidget):
         side.addWidget(self.photo_list, 2)
         side.addWidget(help_)
         side.addWidget(self.file_label)
-        left = QWidget()
-        left.setLayout(side)
-        left.setMinimumWidth(400)
-        left.setMaximumWidth(470)
-        right = QWidget()
-        rl = QVBoxLayout(right)
-        rl.setContentsMargins(0, 0, 0, 0)
-        rl.addWidget(self.title)
-        rl.addWidget(self.view, 1)
-        lay = QHBoxLayout(self)
-        lay.addWidget(left)
-        lay.addWidget(right, 1)
+        side_and_photo(self, side, self.title, self.view, (400, 470))
 
         # single-letter keys (N, P, G, A) are the main window's shortcuts: lists that search by typed
         # letters must not take the keyboard focus from the photo

@@ -19,13 +19,14 @@ from pathlib import Path
 
 from PySide6.QtCore import QPointF, QRectF, Qt, Signal
 from PySide6.QtGui import QColor, QPen, QUndoStack
-from PySide6.QtWidgets import (QComboBox, QGraphicsRectItem, QHBoxLayout, QLabel, QListWidget, QListWidgetItem,
+from PySide6.QtWidgets import (QComboBox, QGraphicsRectItem, QLabel, QListWidget, QListWidgetItem,
                                QPushButton, QTreeWidget, QTreeWidgetItem, QVBoxLayout, QWidget)
 
 from gtkit.errors import GtkitError
 from gtkit.track.calibrate import query_photos
 
 from .image_view import ImageView, Marker
+from .page_layout import side_and_photo
 from .target_store import PLURAL, Target, TargetStore, box_target, match_result, tracked_results
 from .target_undo import AddTarget, ChangeTarget, DeleteTarget
 
@@ -184,18 +185,7 @@ class TargetPage(QWidget):
         side.addWidget(self.table, 2)
         side.addWidget(self.detail)
         side.addWidget(self.file_label)
-        left = QWidget()
-        left.setLayout(side)
-        left.setMinimumWidth(380)
-        left.setMaximumWidth(440)
-        right = QWidget()
-        rl = QVBoxLayout(right)
-        rl.setContentsMargins(0, 0, 0, 0)
-        rl.addWidget(self.title)
-        rl.addWidget(self.view, 1)
-        lay = QHBoxLayout(self)
-        lay.addWidget(left)
-        lay.addWidget(right, 1)
+        side_and_photo(self, side, self.title, self.view, (380, 440))
 
         self._fill_photo_list()
         self.photo_list.currentItemChanged.connect(

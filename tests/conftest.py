@@ -1,4 +1,6 @@
 import os
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -83,3 +85,34 @@ def stage_settings(stage: str, project, cli: dict | None = None):
     from gtkit.stages import settings_for
 
     return settings_for(stage, project if isinstance(project, Project) else Project.load(project), cli)
+
+
+X_TOOLS = {"Xvfb": "xvfb", "xdotool": "xdotool", "import": "imagemagick"}
+
+
+@pytest.fixture(scope="module")
+def xserver():
+    """A private Xvfb display for this module; yields the environment to run X clients in."""
+    missing = [f"{t} (Debian {p})" for t, p in X_TOOLS.items() if not shutil.which(t)]
+    if missing:
+        pytest.skip(f"no {', '.join(missing)} on this machine: scripts/setup.sh installs them")
+    r, w = os.pipe()
+    xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
+                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(w)
+    try:
+        num = b""  # Xvfb writes the display number and a newline once it accepts clients
+        while not num.endswith(b"\n"):
+            chunk = os.read(r, 64)
+            if not chunk:
+                break
+            num += chunk
+        num = num.decode().strip()
+        assert num.isdigit(), "Xvfb did not start"
+        env = {k: v for k, v in os.environ.items() if k not in ("WAYLAND_DISPLAY", "XAUTHORITY")}
+        env.update(DISPLAY=f":{num}", QT_QPA_PLATFORM="xcb", PYTHONPATH=str(ROOT))
+        yield env
+    finally:
+        xvfb.terminate()
+        xvfb.wait(10)
+        os.close(r)

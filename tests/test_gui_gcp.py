@@ -192,35 +192,6 @@ QTimer.singleShot(300, start)
 app.exec()
 """
 
-TOOLS = {"Xvfb": "xvfb", "xdotool": "xdotool", "import": "imagemagick"}
-
-
-@pytest.fixture(scope="module")
-def xserver():
-    missing = [f"{t} (Debian {p})" for t, p in TOOLS.items() if not shutil.which(t)]
-    if missing:
-        pytest.skip(f"no {', '.join(missing)} on this machine: scripts/setup.sh installs them")
-    r, w = os.pipe()
-    xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
-                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    os.close(w)
-    try:
-        num = b""
-        while not num.endswith(b"\n"):
-            chunk = os.read(r, 64)
-            if not chunk:
-                break
-            num += chunk
-        num = num.decode().strip()
-        assert num.isdigit(), "Xvfb did not start"
-        env = {k: v for k, v in os.environ.items() if k not in ("WAYLAND_DISPLAY", "XAUTHORITY")}
-        env.update(DISPLAY=f":{num}", QT_QPA_PLATFORM="xcb", PYTHONPATH=str(ROOT))
-        yield env
-    finally:
-        xvfb.terminate()
-        xvfb.wait(10)
-        os.close(r)
-
 
 def test_gcp_session_on_xvfb_clicks_true_positions_and_georegisters(gcp_site, xserver, tmp_path):
     """A scripted surveyor on X: the page opens each photo of each GCP zoomed at its prediction; a

@@ -24,35 +24,6 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 Q0 = "queries/seq1/0000_W.jpg"
-TOOLS = {"Xvfb": "xvfb", "xdotool": "xdotool", "import": "imagemagick"}
-
-
-@pytest.fixture(scope="module")
-def xserver():
-    """A private Xvfb display for this module; yields the environment to run X clients in."""
-    missing = [f"{t} (Debian {p})" for t, p in TOOLS.items() if not shutil.which(t)]
-    if missing:
-        pytest.skip(f"no {', '.join(missing)} on this machine: scripts/setup.sh installs them")
-    r, w = os.pipe()
-    xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
-                            pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    os.close(w)
-    try:
-        num = b""  # Xvfb writes the display number and a newline once it accepts clients
-        while not num.endswith(b"\n"):
-            chunk = os.read(r, 64)
-            if not chunk:
-                break
-            num += chunk
-        num = num.decode().strip()
-        assert num.isdigit(), "Xvfb did not start"
-        env = {k: v for k, v in os.environ.items() if k not in ("WAYLAND_DISPLAY", "XAUTHORITY")}
-        env.update(DISPLAY=f":{num}", QT_QPA_PLATFORM="xcb", PYTHONPATH=str(ROOT))
-        yield env
-    finally:
-        xvfb.terminate()
-        xvfb.wait(10)
-        os.close(r)
 
 
 def _screenshot(env, path: Path) -> np.ndarray:
