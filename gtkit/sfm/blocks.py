@@ -464,20 +464,12 @@ def _step(label: str, what: str, t0: float) -> float:
     return t
 
 
-def build_block(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings,
-                georegister_block: bool, label: str, executor=None) -> BlockResult:
-    """Features, pairs, mapping, optional georegistration; writes the block's files to ``out``.
-    ``kind``: 'reference' or 'sequence' (adds sequential pairs). ``executor``: None extracts and
-    matches in this process; an :class:`~gtkit.localize.executors.ExecutorSettings` runs feature
-    extraction and matching as tasks on that executor (same database)."""
+def _feature_database(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings, label: str,
+                      executor, groups, look: dict, accuracy: dict, t0: float):
+    """The block's features and verified matches in ``out/database.db``, reused when nothing that made
+    them changed (``database.key``). Returns (reused, pair strategies, number of pairs, (time, CPU)
+    after the features)."""
     P = project.paths
-    out.mkdir(parents=True, exist_ok=True)
-    t0, c0 = time.time(), cpu_seconds()
-    metas = photo_metas(project, names)   # each photo's header read once: positions, pairing, georegistration
-    positions, accuracy = gps_positions_and_accuracy(project, names, metas)
-    look = pairing_positions(project, names, positions, metas=metas) if settings.pair_by_footprint else positions
-    groups = camera_groups(project, names, positions,
-                           reference_calibrations(project, names) if kind == "sequence" else None)
     db = out / "database.db"
     m = settings.matching
     # features + matches are reused when nothing that made them changed (mapping settings may)
@@ -527,6 +519,145 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         import json
         pj = json.loads((out / "pairs.json").read_text())
         pairs_used, n_pairs = pj["strategies"], pj["n_pairs"]
+    return reuse, pairs_used, n_pairs, (t_feat, c_feat)
+
+
+def _duplicate_models(models_info: list[dict]) -> dict[int, int]:
+    """The mapper may rebuild part of the block as another model (up to 20 shared photos): a model
+    whose photos are all in a larger one adds nothing. {model: the model holding all its photos}."""
+    duplicate = {}
+    for k, info in enumerate(models_info):
+        for j in range(k):
+            if j not in duplicate and set(info["photos"]) <= set(models_info[j]["photos"]):
+                duplicate[k] = j
+                break
+    return duplicate
+
+
+def _georegister_models(project: Project, names: list[str], kind: str, settings: SfmSettings, models: list,
+                        models_info: list[dict], duplicate: dict, positions: dict, accuracy: dict, metas: dict,
+                        summary: dict) -> list[int]:
+    """Each model not a duplicate georegistered by the GPS and GCPs (the first that places goes into
+    ``summary``); returns the models kept (all that were placed, else the first)."""
+    P = project.paths
+    kept = [0]
+    gcps = read_gcp_list(P.gcp_list, project.frame) if P.gcp_list.is_file() else []
+    for g in gcps:  # ODM names photos by file name; gtkit by path under images/
+        for c in g.clicks:
+            if "/" not in c.image:
+                c.image = next((n for n in names if Path(n).name == c.image), c.image)
+    if gcps and kind == "reference":
+        summary["gcp_clicks_outside_block"] = check_gcp_clicks(gcps, names)
+    geo_models = []
+    for k, r in enumerate(models):
+        if k in duplicate:
+            continue
+        try:
+            g = georegister(r, positions, gcps, settings.georegister, accuracy, metas)
+            models_info[k]["georegistration"] = {kk: g[kk] for kk in ("n_inliers", "rmse_inliers_m", "gcp_median_err_m")}
+            geo_models.append((k, g))
+        except RegistrationError as e:
+            models_info[k]["georegistration"] = {"error": str(e)}
+    if geo_models:
+        kept = [k for k, _ in geo_models]
+        summary["georegistration"] = geo_models[0][1]
+        summary["frame"] = "project world frame"
+    else:
+        summary["georegistration"] = {"error": models_info[0]["georegistration"]["error"]}
+        summary["frame"] = "arbitrary SfM frame (georegistration failed)"
+    return kept
+
+
+def _hold_by_positions(rec, kind: str, settings: SfmSettings, summary: dict, positions: dict, accuracy: dict,
+                       mapper_record: dict):
+    """The reference block held by its positions in a pose-prior BA where they can hold its shape (see
+    :mod:`gtkit.sfm.prior_ba`); a BA that moves it off them is undone. Returns the block."""
+    geo = summary.get("georegistration", {})
+    if (kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3
+            and (geo.get("fit", {}).get("mode") == "gravity-held"
+                 or (geo.get("fit", {}).get("mode") == "combined" and (geo.get("gps_quality") or {}).get("bias_assumed")))):
+        summary["held_by_positions"] = {"applied": False, "reason": "positions too coarse to hold the block's shape "
+                                        "(its tilt is held by gravity)"}
+    elif kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3:
+        # a photo the seeded mapper found off its prior stays out of the priors, even inside the Sim(3)'s threshold
+        before_ba = pycolmap.Reconstruction(rec)
+        held = hold_by_positions(rec, positions, set(geo.get("outliers", []))
+                                 | set(mapper_record.get("prior_outliers", [])), accuracy,
+                                 num_threads=settings.num_threads)
+        res = held.get("residual_median_m") or {}
+        if held.get("applied") and res and res["after"] > max(2.0 * res["before"], res["before"] + 0.05):
+            # the BA moved the block off the positions it was fitted to (pycolmap's prior alignment
+            # with its RANSAC threshold left at 0 did so on surveyed blocks: 0.069 -> 5.46 m): keep
+            # the georegistered block as it was, and say so
+            rec = before_ba
+            held = {**held, "applied": False, "reverted": True,
+                    "reason": f"the pose-prior BA moved the block off its positions (residual median "
+                              f"{res['before']:.3f} -> {res['after']:.3f} m): the georegistered block kept"}
+            log.warning("reference block: %s", held["reason"])
+        summary["held_by_positions"] = held
+    return rec
+
+
+def _unregistered_reasons(db: Path, names: list[str], registered: set, models_info: list[dict], summary: dict,
+                          min_num_inliers: int) -> dict[str, str]:
+    """Why each photo not in the block is not: in another model (and why that one was not kept), off its
+    seeded prior, or its matches (keypoints, verified pairs, inliers)."""
+    diag = image_diagnostics(db)
+    in_other = {n: info for info in models_info if not info["kept"] for n in info["photos"]}
+    unregistered = {}
+    for n in names:
+        if n in registered:
+            continue
+        if n in in_other:
+            i = in_other[n]
+            # the model's own reason is stated once, with the models; its photos point to it
+            unregistered[n] = (f"in model {i['model']} ({i['n_registered']} photos), "
+                               + ("not placed in the world (why: see model " + str(i["model"]) + ")"
+                                  if i["reason"].startswith("not placed in the world") else i["reason"]))
+        elif n in summary.get("seeded", {}).get("not_registered", {}):
+            unregistered[n] = "its prior pose does not fit the block: " + summary["seeded"]["not_registered"][n]
+        else:
+            unregistered[n] = failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}),
+                                             min_num_inliers)
+    return unregistered
+
+
+def _write_block_model(out: Path, rec, kind: str, summary: dict, label: str) -> None:
+    """The block's model, poses and intrinsics; a reference block not placed in the world is kept apart
+    (``unplaced_model/``, for inspection) so that no later stage builds on it."""
+    if kind == "reference" and "error" in summary.get("georegistration", {}):
+        import shutil
+
+        for f in ("poses.txt", "intrinsics.txt"):
+            (out / f).unlink(missing_ok=True)
+        shutil.rmtree(out / "model", ignore_errors=True)
+        (out / "unplaced_model").mkdir(exist_ok=True)
+        rec.write(out / "unplaced_model")
+    else:
+        (out / "model").mkdir(exist_ok=True)
+        rec.write(out / "model")
+        write_poses(out / "poses.txt", model_poses(rec), header=f"{label}: {summary['frame']}")
+        write_intrinsics(out / "intrinsics.txt", model_cameras(rec))
+
+
+def build_block(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings,
+                georegister_block: bool, label: str, executor=None) -> BlockResult:
+    """Features, pairs, mapping, optional georegistration; writes the block's files to ``out``.
+    ``kind``: 'reference' or 'sequence' (adds sequential pairs). ``executor``: None extracts and
+    matches in this process; an :class:`~gtkit.localize.executors.ExecutorSettings` runs feature
+    extraction and matching as tasks on that executor (same database)."""
+    P = project.paths
+    out.mkdir(parents=True, exist_ok=True)
+    t0, c0 = time.time(), cpu_seconds()
+    metas = photo_metas(project, names)   # each photo's header read once: positions, pairing, georegistration
+    positions, accuracy = gps_positions_and_accuracy(project, names, metas)
+    look = pairing_positions(project, names, positions, metas=metas) if settings.pair_by_footprint else positions
+    groups = camera_groups(project, names, positions,
+                           reference_calibrations(project, names) if kind == "sequence" else None)
+    db = out / "database.db"
+    m = settings.matching
+    reuse, pairs_used, n_pairs, (t_feat, c_feat) = _feature_database(
+        project, names, out, kind, settings, label, executor, groups, look, accuracy, t0)
     t_match, c_match = _step(label, f"matching ({n_pairs} pairs)", t_feat), cpu_seconds()
     all_ids, calibrated, no_prior = _camera_ids(db, groups)
     policy = intrinsics_policy(settings, calibrated, no_prior, all_ids, len(positions))
@@ -571,68 +702,16 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         summary["intrinsics_policy"]["exif_focal_refined"] = focal_check["observable"]
     models_info = [{"model": k, "n_registered": r.num_reg_images(), "n_points3D": r.num_points3D(),
                     "photos": sorted(im.name for im in r.images.values() if im.has_pose)} for k, r in enumerate(models)]
-    kept = [0]
-    # the mapper may rebuild part of the block as another model (up to 20 shared photos): a model
-    # whose photos are all in a larger one adds nothing
-    duplicate = {}
-    for k, info in enumerate(models_info):
-        for j in range(k):
-            if j not in duplicate and set(info["photos"]) <= set(models_info[j]["photos"]):
-                duplicate[k] = j
-                break
+    kept, duplicate = [0], _duplicate_models(models_info)
     if georegister_block:
-        gcps = read_gcp_list(P.gcp_list, project.frame) if P.gcp_list.is_file() else []
-        for g in gcps:  # ODM names photos by file name; gtkit by path under images/
-            for c in g.clicks:
-                if "/" not in c.image:
-                    c.image = next((n for n in names if Path(n).name == c.image), c.image)
-        if gcps and kind == "reference":
-            summary["gcp_clicks_outside_block"] = check_gcp_clicks(gcps, names)
-        geo_models = []
-        for k, r in enumerate(models):
-            if k in duplicate:
-                continue
-            try:
-                g = georegister(r, positions, gcps, settings.georegister, accuracy, metas)
-                models_info[k]["georegistration"] = {kk: g[kk] for kk in ("n_inliers", "rmse_inliers_m", "gcp_median_err_m")}
-                geo_models.append((k, g))
-            except RegistrationError as e:
-                models_info[k]["georegistration"] = {"error": str(e)}
-        if geo_models:
-            kept = [k for k, _ in geo_models]
-            summary["georegistration"] = geo_models[0][1]
-            summary["frame"] = "project world frame"
-        else:
-            summary["georegistration"] = {"error": models_info[0]["georegistration"]["error"]}
-            summary["frame"] = "arbitrary SfM frame (georegistration failed)"
+        kept = _georegister_models(project, names, kind, settings, models, models_info, duplicate, positions,
+                                   accuracy, metas, summary)
     else:
         summary["frame"] = "arbitrary SfM frame"
     rec = merge_models([models[k] for k in kept]) if len(kept) > 1 else models[kept[0]]
     if len(kept) > 1:  # each model was georegistered on its own; the figures above are model 0's
         summary["georegistration"]["merged_models"] = kept
-    geo = summary.get("georegistration", {})
-    if (kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3
-            and (geo.get("fit", {}).get("mode") == "gravity-held"
-                 or (geo.get("fit", {}).get("mode") == "combined" and (geo.get("gps_quality") or {}).get("bias_assumed")))):
-        summary["held_by_positions"] = {"applied": False, "reason": "positions too coarse to hold the block's shape "
-                                        "(its tilt is held by gravity)"}
-    elif kind == "reference" and settings.hold_by_positions and "error" not in geo and geo.get("n_gps", 0) >= 3:
-        # a photo the seeded mapper found off its prior stays out of the priors, even inside the Sim(3)'s threshold
-        before_ba = pycolmap.Reconstruction(rec)
-        held = hold_by_positions(rec, positions, set(geo.get("outliers", []))
-                                 | set(mapper_record.get("prior_outliers", [])), accuracy,
-                                 num_threads=settings.num_threads)
-        res = held.get("residual_median_m") or {}
-        if held.get("applied") and res and res["after"] > max(2.0 * res["before"], res["before"] + 0.05):
-            # the BA moved the block off the positions it was fitted to (pycolmap's prior alignment
-            # with its RANSAC threshold left at 0 did so on surveyed blocks: 0.069 -> 5.46 m): keep
-            # the georegistered block as it was, and say so
-            rec = before_ba
-            held = {**held, "applied": False, "reverted": True,
-                    "reason": f"the pose-prior BA moved the block off its positions (residual median "
-                              f"{res['before']:.3f} -> {res['after']:.3f} m): the georegistered block kept"}
-            log.warning("reference block: %s", held["reason"])
-        summary["held_by_positions"] = held
+    rec = _hold_by_positions(rec, kind, settings, summary, positions, accuracy, mapper_record)
     for k, info in enumerate(models_info):
         info["kept"] = k in kept
         if k in duplicate:
@@ -641,24 +720,8 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
             info["reason"] = ("not placed in the world: " + info.get("georegistration", {}).get("error", "")
                               if georegister_block else "not the largest model of an unregistered block")
     t_geo, c_geo = time.time(), cpu_seconds()
-    diag = image_diagnostics(db)
     registered = {im.name for im in rec.images.values() if im.has_pose}
-    in_other = {n: info for info in models_info if not info["kept"] for n in info["photos"]}
-    unregistered = {}
-    for n in names:
-        if n in registered:
-            continue
-        if n in in_other:
-            i = in_other[n]
-            # the model's own reason is stated once, with the models; its photos point to it
-            unregistered[n] = (f"in model {i['model']} ({i['n_registered']} photos), "
-                               + ("not placed in the world (why: see model " + str(i["model"]) + ")"
-                                  if i["reason"].startswith("not placed in the world") else i["reason"]))
-        elif n in summary.get("seeded", {}).get("not_registered", {}):
-            unregistered[n] = "its prior pose does not fit the block: " + summary["seeded"]["not_registered"][n]
-        else:
-            unregistered[n] = failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}),
-                                             m.min_num_inliers)
+    unregistered = _unregistered_reasons(db, names, registered, models_info, summary, m.min_num_inliers)
     summary.update({"n_registered": len(registered), "unregistered": unregistered, "n_models": len(models),
                     "models": models_info, "n_points3D": rec.num_points3D(),
                     "mean_reproj_px": float(rec.compute_mean_reprojection_error()),
@@ -667,21 +730,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                                               "fixed": cid in policy["constant_cameras"],
                                               "refined": _refined_parts(cid, policy, focal_check)}
                                    for cid, c in rec.cameras.items()}})
-    if kind == "reference" and "error" in summary.get("georegistration", {}):
-        # a reference block that could not be placed in the world is kept apart (for inspection), so
-        # that no later stage builds on it
-        import shutil
-
-        for f in ("poses.txt", "intrinsics.txt"):
-            (out / f).unlink(missing_ok=True)
-        shutil.rmtree(out / "model", ignore_errors=True)
-        (out / "unplaced_model").mkdir(exist_ok=True)
-        rec.write(out / "unplaced_model")
-    else:
-        (out / "model").mkdir(exist_ok=True)
-        rec.write(out / "model")
-        write_poses(out / "poses.txt", model_poses(rec), header=f"{label}: {summary['frame']}")
-        write_intrinsics(out / "intrinsics.txt", model_cameras(rec))
+    _write_block_model(out, rec, kind, summary, label)
     summary["seconds"] = {"features": t_feat - t0, "matching": t_match - t_feat, "mapping": t_map - t_match,
                           "georegistration": t_geo - t_map}
     summary["cpu_seconds"] = {"features": round(c_feat - c0, 1), "matching": round(c_match - c_feat, 1),

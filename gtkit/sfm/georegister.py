@@ -40,7 +40,7 @@ from .gcp_click_scale import click_threshold_px, detect_click_scale, scaled
 from .gps_fit import claimed_accuracy, gravity_held_fit
 from .gravity import block_up, up_from_level_prior
 from .plausibility import check_block
-from .similarity import collinearity, group_weighted_refit, umeyama
+from .similarity import collinearity, group_weighted_refit
 
 log = logging.getLogger(__name__)
 
@@ -414,6 +414,37 @@ def georegister(rec: pycolmap.Reconstruction, gps: dict[str, np.ndarray], gcps: 
         raise
 
 
+def _gcp_residuals(gcps: list[GCP], gcp_sfm: dict, fit: Sim3Fit, names: list[str], kinds: np.ndarray,
+                   checks: set) -> dict:
+    """Each GCP's and check point's residual after the fit (or why it was not triangulated), and the
+    median / RMSE of both kinds."""
+    report = {}
+    gres = {}
+    inlier_of = {n: bool(ok) for n, ok, k in zip(names, fit.inliers, kinds) if k == "gcp"}
+    for g in gcps:
+        s = gcp_sfm[g.name]
+        if s["xyz"] is None:
+            gres[g.name] = {"status": "not triangulated", "check": g.name in checks,
+                            "reason": s["reason"] or "fewer than 2 clicks in registered images",
+                            "clicks_in_model": s["clicks_in_model"]}
+            continue
+        d = sim3_apply(fit.tgt_from_src, s["xyz"][None])[0] - g.xyz
+        gres[g.name] = {"status": "ok", "dx_m": float(d[0]), "dy_m": float(d[1]), "dz_m": float(d[2]),
+                        "err_m": float(np.linalg.norm(d)), "clicks_used": s["clicks_used"],
+                        "clicks_total": s["clicks_total"], "check": g.name in checks,
+                        "in_fit": g.name in inlier_of and inlier_of[g.name],
+                        "outlier": g.name in inlier_of and not inlier_of[g.name],
+                        "click_residuals_px": s["click_residuals_px"]}
+    ok = [v["err_m"] for v in gres.values() if v["status"] == "ok" and not v["check"]]
+    chk = [v["err_m"] for v in gres.values() if v["status"] == "ok" and v["check"]]
+    report["gcp_residuals"] = gres
+    report["gcp_median_err_m"] = float(np.median(ok)) if ok else None
+    report["gcp_rmse_m"] = float(np.sqrt(np.mean(np.square(ok)))) if ok else None
+    report["checkpoint_median_err_m"] = float(np.median(chk)) if chk else None
+    report["checkpoint_rmse_m"] = float(np.sqrt(np.mean(np.square(chk)))) if chk else None
+    return report
+
+
 def _georegister(rec, gps, gcps, settings, gps_accuracy, metas, notes: dict) -> dict:
     if settings.tilt_from not in ("auto", "gps", "gravity"):
         raise RegistrationError(f'[sfm.georegister] tilt_from = "{settings.tilt_from}": expected auto, gps or gravity')
@@ -559,27 +590,5 @@ def _georegister(rec, gps, gcps, settings, gps_accuracy, metas, notes: dict) -> 
                                   if fit.thresholds_m is not None and (kinds == "gps").any() else None),
               "group_sigma_m": sigmas,
               "outliers": [n for n, ok in zip(names, fit.inliers) if not ok]}
-    gres = {}
-    inlier_of = {n: bool(ok) for n, ok, k in zip(names, fit.inliers, kinds) if k == "gcp"}
-    for g in gcps:
-        s = gcp_sfm[g.name]
-        if s["xyz"] is None:
-            gres[g.name] = {"status": "not triangulated", "check": g.name in checks,
-                            "reason": s["reason"] or "fewer than 2 clicks in registered images",
-                            "clicks_in_model": s["clicks_in_model"]}
-            continue
-        d = sim3_apply(fit.tgt_from_src, s["xyz"][None])[0] - g.xyz
-        gres[g.name] = {"status": "ok", "dx_m": float(d[0]), "dy_m": float(d[1]), "dz_m": float(d[2]),
-                        "err_m": float(np.linalg.norm(d)), "clicks_used": s["clicks_used"],
-                        "clicks_total": s["clicks_total"], "check": g.name in checks,
-                        "in_fit": g.name in inlier_of and inlier_of[g.name],
-                        "outlier": g.name in inlier_of and not inlier_of[g.name],
-                        "click_residuals_px": s["click_residuals_px"]}
-    ok = [v["err_m"] for v in gres.values() if v["status"] == "ok" and not v["check"]]
-    chk = [v["err_m"] for v in gres.values() if v["status"] == "ok" and v["check"]]
-    report["gcp_residuals"] = gres
-    report["gcp_median_err_m"] = float(np.median(ok)) if ok else None
-    report["gcp_rmse_m"] = float(np.sqrt(np.mean(np.square(ok)))) if ok else None
-    report["checkpoint_median_err_m"] = float(np.median(chk)) if chk else None
-    report["checkpoint_rmse_m"] = float(np.sqrt(np.mean(np.square(chk)))) if chk else None
+    report.update(_gcp_residuals(gcps, gcp_sfm, fit, names, kinds, checks))
     return report

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from ..gcp.points import GCPPoint, points_path, write_points
 from ..io.odm import read_gcp_list
+from .photo_metadata import strip_metadata
 
 VARIANTS = ("gcp-points", "gcp-points-no-gps")
 ACCURACY_M = (0.02, 0.03)   # a GNSS rover's stated 1-sigma horizontal / vertical accuracy
@@ -40,8 +41,8 @@ def apply_gcp_points_variant(root: str | Path, name: str = "gcp-points", checkpo
     write_points(points_path(proj.paths), pts, proj.frame)
     (root / "truth").mkdir(exist_ok=True)
     shutil.move(str(src), root / "truth" / "gcp_list_sample.txt")
-    if name == "gcp-points-no-gps":
-        from .variants import apply_variant
-
-        apply_variant(root, "no-gps")
+    if name == "gcp-points-no-gps":   # the no-gps variant of gtkit.synth.variants
+        for p in sorted((root / "images" / "reference").glob("*")):
+            if p.suffix.lower() in (".jpg", ".jpeg"):
+                strip_metadata(p, gps=True, focal=False)
     return out
