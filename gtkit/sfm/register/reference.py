@@ -12,7 +12,8 @@ import pycolmap
 
 from ...camera import Camera
 from ...errors import GtkitError
-from ...io.exif import prior_pose, read_photo_meta
+from ...io.exif import prior_pose
+from ...photo_positions import PhotoPositions
 from ...pose import Pose
 from ...project import Project
 from ..blocks import QUERIES_STAGE
@@ -41,6 +42,7 @@ class ReferenceBlock:
         self.rec = pycolmap.Reconstruction(ref_dir)
         self.poses, self.cams = model_poses(self.rec), model_cameras(self.rec)
         self.db = ref_db
+        self.positions = PhotoPositions(project)
         self._points: ReferencePoints | None = None
 
     @property
@@ -64,14 +66,9 @@ class ReferenceBlock:
         return _place(obs, self.poses, self.cams, self.rec, self.settings.tie_max_px)[0]
 
     def gps_centre(self, name: str) -> np.ndarray | None:
-        """The photo's GPS position in the project frame (EXIF GPS + altitude), None without one."""
-        try:
-            m = read_photo_meta(self.P.images / name)
-        except GtkitError:
-            return None
-        if not m.has_gps or m.altitude is None:
-            return None
-        return self.project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
+        """The photo's position in the project frame (geo.txt first, else EXIF GPS + altitude:
+        :mod:`gtkit.photo_positions`), None without one."""
+        return self.positions.centre(name)
 
     def neighbour_priors(self, name: str, k: int = 2) -> list[Pose]:
         """Poses at the photo's GPS position with the attitude of the nearest reference photos (a photo
