@@ -4,11 +4,12 @@ summary, ``gtkit run``'s lines; and an unexpected failure of a stage reaching th
 naming the stage and the file that holds its traceback (exit 2), never as a traceback."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
 
-from gtkit import run_site
+from gtkit import run_site, stages
 from gtkit.cli import main as gtkit
 from gtkit.geo import GeoFrame
 from gtkit.project import Project
@@ -87,10 +88,10 @@ def test_run_summary_says_how_each_sequence_was_placed(project):
 
 
 def test_an_unexpected_failure_is_one_line_naming_the_stage_and_its_traceback_file(project, monkeypatch, capsys):
-    def broken(project, opts):
+    def broken(project, settings, context):
         raise TypeError("unsupported format string passed to NoneType.__format__")
 
-    monkeypatch.setitem(run_site.RUNNERS, "report", broken)
+    monkeypatch.setitem(stages.STAGE, "report", dataclasses.replace(stages.STAGE["report"], run=broken))
     rc = gtkit(["run", str(project.paths.root), "--from", "report", "--until", "report"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2
