@@ -23,8 +23,9 @@ from ..camera import Camera
 from ..errors import GtkitError
 from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
-from ..io.odm import read_gcp_list, read_geo_txt
+from ..io.odm import read_gcp_list
 from ..io.poses import read_intrinsics, write_intrinsics, write_poses
+from ..photo_positions import positions_and_accuracy
 from ..project import (Project, cpu_seconds, file_fingerprint, mark_stage_done, settings_dict, settings_key,
                        stage_done, start_stage_clock)
 from . import quiet_colmap
@@ -102,22 +103,8 @@ def gps_positions(project: Project, names: list[str]) -> dict[str, np.ndarray]:
 def gps_positions_and_accuracy(project: Project, names: list[str], metas: dict | None = None
                                ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Camera positions (geo.txt first, else EXIF GPS + DJI altitude) and, where geo.txt states
-    one, each position's accuracy (metres, the larger of horizontal and vertical). ``metas``: the
-    photos' metadata already read (:func:`photo_metas`); a photo missing there is read here."""
-    P = project.paths
-    geo = read_geo_txt(P.geo_txt, project.frame) if P.geo_txt.is_file() else {}
-    out, acc = {}, {}
-    for n in names:
-        g = geo.get(n) or geo.get(Path(n).name)
-        if g is not None and np.all(np.isfinite(g.xyz)):
-            out[n] = g.xyz
-            if g.accuracy and max(g.accuracy) > 0:
-                acc[n] = float(max(g.accuracy))
-            continue
-        m = _meta(project, n, metas)
-        if m.has_gps and m.altitude is not None:
-            out[n] = project.frame.wgs84_to_local(m.lon, m.lat, m.altitude)
-    return out, acc
+    one, each position's accuracy: :func:`gtkit.photo_positions.positions_and_accuracy`, the one reader."""
+    return positions_and_accuracy(project, names, metas)
 
 
 def _meta(project: Project, name: str, metas: dict | None):
