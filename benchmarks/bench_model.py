@@ -65,9 +65,11 @@ def main(argv=None):
     from gtkit.model.build import run as build
     from gtkit.model.compare import run as compare
 
+    from gtkit.stages import settings_for
+
     root = Path(a.project)
     t0 = time.time()
-    summary = build(root, force=a.force)
+    summary = build(root, settings_for("model", Project.load(root)), force=a.force)
     wall = time.time() - t0
     proj = Project.load(root)
     built = root / summary["model"]

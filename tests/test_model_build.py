@@ -174,13 +174,13 @@ def test_block_without_georegistration_is_refused(tmp_path):
 
     proj = Project.create(tmp_path / "site", GeoFrame("EPSG:32650", (500000.0, 3300000.0, 0.0)))
     with pytest.raises(GtkitError, match="run `gtkit sfm DIR --block reference` first"):
-        build(proj)
+        build(proj, ModelSettings())
     block = proj.paths.stage("sfm_reference")
     block.mkdir(parents=True)
     (block / "block.json").write_text(json.dumps({"frame": "arbitrary SfM frame (georegistration failed)",
                                                   "georegistration": {"error": "fewer than 3 GPS positions"}}))
     with pytest.raises(GtkitError) as e:
-        build(proj)
+        build(proj, ModelSettings())
     msg = str(e.value)
     assert "not georegistered (fewer than 3 GPS positions)" in msg and "block.json" in msg and "\n" not in msg
 
