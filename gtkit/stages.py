@@ -243,19 +243,20 @@ def _overlays(project, s, ctx):
             "poses": "reference block only (no pseudo-GT poses)" if poses is not None else "pseudo-GT + reference block"}
 
 
-def _query_names(project):
+def _query_names(project, localize_settings):
     from .localize.reach import query_names
 
-    return query_names(project, settings_for("localize", project))
+    return query_names(project, localize_settings)
 
 
 def _render_db(project, s, ctx):
     from .localize import database
 
     need_model(project)
-    if not _query_names(project):
+    loc = settings_for("localize", project)     # its priors choose the views the queries can reach
+    if not _query_names(project, loc):
         raise Skip("no query photos to localize")
-    out = database.run(project, s, _executor(ctx), localize_settings=settings_for("localize", project))
+    out = database.run(project, s, _executor(ctx), localize_settings=loc)
     rec = json.loads((out / STAGE_RECORD).read_text()).get("summary", {})
     return {"n_views": rec.get("n_views"), "n_kept": rec.get("n_kept")}
 
@@ -263,7 +264,7 @@ def _render_db(project, s, ctx):
 def _localize(project, s, ctx):
     from .localize import localize
 
-    if not _query_names(project):
+    if not _query_names(project, s):
         raise Skip("no query photos to localize")
     if not (project.paths.stage("render_db") / STAGE_RECORD).is_file():
         raise Skip("no rendered database (render_db did not run)")
