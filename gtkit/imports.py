@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import GtkitError
+from .io.poses import INTRINSICS, POSES
 from .project import Project
 
 log = logging.getLogger(__name__)
@@ -230,11 +231,11 @@ def import_poses(project, source: str | Path, settings: PoseImportSettings | Non
     out = project.paths.stage(STAGE)
     out.mkdir(parents=True, exist_ok=True)
     header = f"imported from {source} ({kind}); frame {project.frame.crs_spec} origin {list(project.frame.origin)}"
-    write_poses(out / "poses.txt", poses, header=header)
-    write_intrinsics(out / "intrinsics.txt", cams)
+    write_poses(out / POSES, poses, header=header)
+    write_intrinsics(out / INTRINSICS, cams)
     colmap = write_colmap_model(out / "colmap", poses, cams, project.frame, binary=settings.colmap_binary)
     info = {"format": kind, "n_images": len(poses), "n_skipped": len(skipped), "n_cameras": len(set(cams.values())),
-            "poses": str(out / "poses.txt"), "intrinsics": str(out / "intrinsics.txt"), "colmap": str(colmap),
+            "poses": str(out / POSES), "intrinsics": str(out / INTRINSICS), "colmap": str(colmap),
             "settings": _toml_safe(asdict(settings))}
     project.record_import("poses", source, **info)
     log.info("imported %d poses (%s) from %s; %d photos without a pose skipped", len(poses), kind, source, len(skipped))
@@ -249,6 +250,6 @@ def export_colmap(project, out_dir: str | Path, poses_file: str | Path | None = 
 
     project = _project(project)
     d = project.paths.stage(STAGE)
-    poses = read_poses(poses_file or d / "poses.txt")
-    cams = read_intrinsics(intrinsics_file or d / "intrinsics.txt")
+    poses = read_poses(poses_file or d / POSES)
+    cams = read_intrinsics(intrinsics_file or d / INTRINSICS)
     return write_colmap_model(out_dir, poses, cams, project.frame, binary=binary)

@@ -33,6 +33,7 @@ import tomli_w
 from .errors import GtkitError
 from .geo import GeoFrame
 from .io.atomic import write_json, write_text
+from .io.poses import INTRINSICS, POSES
 
 PROJECT_FILE = "project.toml"
 
@@ -68,6 +69,25 @@ class Paths:
 
     def stage(self, name: str) -> Path:
         return self.work / name
+
+    # Pose sets (gtkit.io.poses formats): a stage's, and the ones every reader asks for by name.
+    def poses(self, stage: str) -> Path:
+        return self.stage(stage) / POSES
+
+    def intrinsics(self, stage: str) -> Path:
+        return self.stage(stage) / INTRINSICS
+
+    def record(self, stage: str) -> Path:
+        """The stage's record (settings, inputs, summary: :func:`read_stage_record`)."""
+        return self.stage(stage) / STAGE_RECORD
+
+    reference_poses = property(lambda s: s.poses("sfm_reference"))     # the reference block's SfM
+    reference_intrinsics = property(lambda s: s.intrinsics("sfm_reference"))
+    pseudo_gt_poses = property(lambda s: s.poses("register"))          # gtkit register's query poses
+    localized_poses = property(lambda s: s.poses("localize"))          # gtkit localize's
+    registration = property(lambda s: s.stage("register") / "registration.json")  # its record
+    truth_poses = property(lambda s: s.truth / POSES)                  # a sample's truth (evaluation only)
+    truth_intrinsics = property(lambda s: s.truth / INTRINSICS)
 
     def query_sequences(self) -> list[str]:
         if not self.query_images.is_dir():
@@ -137,6 +157,31 @@ def _version() -> str:
 # --- stage records: resume when the settings match, recompute when they changed ------------
 
 STAGE_RECORD = "stage.json"
+
+
+@dataclasses.dataclass
+class StageRecord:
+    """A finished stage's record (``work/<stage>/stage.json``), as :func:`mark_stage_done` wrote it."""
+    path: Path
+    settings: dict
+    inputs: dict
+    summary: dict
+    finished: str = ""
+    key: str = ""
+
+
+def read_stage_record(stage_dir: str | Path) -> StageRecord | None:
+    """The record in ``stage_dir``; None when the stage has not finished there (no record, or one
+    that is not a record: a half-written file is never taken for a finished stage)."""
+    f = Path(stage_dir) / STAGE_RECORD
+    try:
+        data = json.loads(f.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if not isinstance(data, dict):
+        return None
+    return StageRecord(f, data.get("settings") or {}, data.get("inputs") or {}, data.get("summary") or {},
+                       data.get("finished", ""), data.get("key", ""))
 
 
 def settings_dict(settings: Any) -> dict:

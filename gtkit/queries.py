@@ -27,6 +27,7 @@ from pathlib import Path
 from .camera import Camera
 from .errors import GtkitError
 from .io.exif import camera_key  # noqa: F401 (named here too: which query photos share a camera)
+from .io.poses import INTRINSICS
 from .project import Project
 
 IMAGE_EXT = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
@@ -126,7 +127,7 @@ def query_cameras(project: Project, names: list[str]) -> dict[str, QueryCamera]:
         return metas[name]
 
     def reference_by_camera() -> dict[tuple, tuple[str, Camera]]:
-        cams = _read(P.stage("sfm_reference") / "intrinsics.txt")
+        cams = _read(P.reference_intrinsics)
         out: dict[tuple, tuple[str, Camera]] = {}
         for n in sorted(cams):
             if (P.images / n).is_file():
@@ -141,7 +142,7 @@ def query_cameras(project: Project, names: list[str]) -> dict[str, QueryCamera]:
         parts = Path(n).parts
         seq = parts[1] if len(parts) > 2 and parts[0] == "queries" else None
         if seq is not None:
-            f = P.stage("sfm_queries") / seq / "intrinsics.txt"
+            f = P.stage("sfm_queries") / seq / INTRINSICS
             if seq not in seq_cams:
                 seq_cams[seq] = _read(f)
             cams = seq_cams[seq]

@@ -162,7 +162,7 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
         out["query_blocks"] = {s: ({"error": b["error"]} if "error" in b else
                                    {"n_registered": b.get("n_registered"), "n_images": b.get("n_images")})
                                for s, b in qsum.items()}
-    reg = _load(P.stage("register") / "registration.json")
+    reg = record.read_registration(P.registration)
     if reg:
         imgs = (reg.get("images") or {}).values()
         out["pseudo_gt"] = {"n_registered": reg.get("n_registered"), "n_images": reg.get("n_images"),

@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .errors import GtkitError
-from .project import STAGE_RECORD, Project
+from .project import STAGE_RECORD, Project, read_stage_record
 from .settings import resolve
 from .sfm import registration_record as record
 
@@ -257,7 +257,7 @@ def _render_db(project, s, ctx):
     if not _query_names(project, loc):
         raise Skip("no query photos to localize")
     out = database.run(project, s, _executor(ctx), localize_settings=loc)
-    rec = json.loads((out / STAGE_RECORD).read_text()).get("summary", {})
+    rec = read_stage_record(out).summary
     return {"n_views": rec.get("n_views"), "n_kept": rec.get("n_kept")}
 
 
@@ -266,7 +266,7 @@ def _localize(project, s, ctx):
 
     if not _query_names(project, s):
         raise Skip("no query photos to localize")
-    if not (project.paths.stage("render_db") / STAGE_RECORD).is_file():
+    if read_stage_record(project.paths.stage("render_db")) is None:
         raise Skip("no rendered database (render_db did not run)")
     out = localize.run(project, s, executor=_executor(ctx))
     st = json.loads((out / "status.json").read_text())
@@ -284,7 +284,7 @@ def _track(project, s, ctx):
     det = Path(t.detections) if t.detections else P.detections
     if not det.exists():
         raise Skip(f"no target detections ({rel(project, det)}: click targets with gtkit annotate)")
-    poses = Path(t.poses) if t.poses else P.stage("localize") / "poses.txt"
+    poses = Path(t.poses) if t.poses else P.localized_poses
     if not poses.is_file():
         raise Skip(f"no wide-camera poses ({rel(project, poses)})")
     if not P.cameras.is_file():

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from gtkit.errors import GtkitError
+from gtkit.sfm import registration_record
 
 log = logging.getLogger(__name__)
 
@@ -156,12 +157,8 @@ def read_residuals(paths, tiepoints=(), model: PosedResiduals | None = None) -> 
     """tie-point id -> residual (see the module docstring); empty when there is nothing to show."""
     f = residual_file(paths)
     out = _from_file(f) if f is not None else computed_residuals(paths, tiepoints, model)
-    reg = paths.stage(REGISTER) / "registration.json"
-    if out and reg.is_file():
-        try:
-            bad = json.loads(reg.read_text(encoding="utf-8")).get("bad_tiepoints", {}) or {}
-        except (OSError, json.JSONDecodeError):
-            bad = {}
+    if out:
+        bad = registration_record.bad_tiepoints(registration_record.read_registration(paths.registration))
         for tid, info in bad.items():
             if tid in out:
                 out[tid].inlier = False

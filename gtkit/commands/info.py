@@ -9,9 +9,7 @@ def register(sub):
 
 
 def run(args):
-    import json
-
-    from ..project import STAGE_RECORD, Project
+    from ..project import Project, read_stage_record
 
     proj = Project.load(args.project)
     P = proj.paths
@@ -22,6 +20,7 @@ def run(args):
     for seq in P.query_sequences():
         print(f"sequence  {seq}: {len(list((P.query_images / seq).glob('*.*')))} photos")
     if P.work.is_dir():
-        for rec in sorted(P.work.glob(f"*/{STAGE_RECORD}")):
-            d = json.loads(rec.read_text())
-            print(f"stage     {rec.parent.name}: finished {d.get('finished')}")
+        for d in sorted(p for p in P.work.iterdir() if p.is_dir()):
+            rec = read_stage_record(d)
+            if rec is not None:
+                print(f"stage     {d.name}: finished {rec.finished}")

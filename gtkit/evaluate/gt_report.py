@@ -124,9 +124,9 @@ def run(project, settings: ReportSettings) -> dict:
     rep = report.collect(project)
     rep["settings"] = settings_dict(settings)     # what made it (the report stage's settings)
     checks: dict = {"rows": [], "after_table": [], "plots": [], "columns": []}
-    truth = P.truth / "poses.txt"
+    truth = P.truth_poses
     if truth.is_file():
-        reg_poses = P.stage(REGISTER_STAGE) / "poses.txt"
+        reg_poses = P.poses(REGISTER_STAGE)
         est = read_poses(reg_poses) if rep.get("n_registered") and reg_poses.is_file() else {}
         te = truth_errors(est, truth, sorted(rep["per_image"]))
         rep["median_pos_err_m"], rep["median_rot_err_deg"] = te["median_pos_err_m"], te["median_rot_err_deg"]
@@ -148,7 +148,7 @@ def run(project, settings: ReportSettings) -> dict:
                 rep["share_within_2sigma_ellipsoid"] = ell
                 checks["rows"].append(f"| position errors inside the 2-sigma ellipsoid (calibrated: 95 %) | {100 * ell:.0f} % |")
         if rep.get("reference_block") is not None:
-            rp = read_poses(P.stage(REFERENCE_STAGE) / "poses.txt")
+            rp = read_poses(P.poses(REFERENCE_STAGE))
             rt = truth_errors(rp, truth, sorted(rp))
             rep["reference_median_pos_err_m"], rep["reference_median_rot_err_deg"] = rt["median_pos_err_m"], rt["median_rot_err_deg"]
             checks["rows"].append(f"| reference block vs truth | {_fmt(rep['reference_median_pos_err_m'])} m, "

@@ -14,8 +14,8 @@ import numpy as np
 
 from ..errors import GtkitError
 from ..io.atomic import write_json, write_text
-from ..io.poses import read_intrinsics, read_poses
-from ..project import Project
+from ..io.poses import POSES, read_intrinsics, read_poses
+from ..project import Project, read_stage_record
 from .poses import THRESHOLDS, medians, pose_errors, recall
 from .retrieval import retrieval_metrics, seen_fraction, surface_points
 
@@ -38,8 +38,8 @@ def retrieval_overlaps(project: Project, queries: list[dict], truth: dict, intri
         return {}
     db = load_database(project)
     views = {v.name: v for v in db.views}
-    rec = json.loads((project.paths.stage("render_db") / "stage.json").read_text())
-    r = open_model(project.paths.root, rec["settings"].get("model", "model/reference.obj"), project.frame)
+    rec = read_stage_record(project.paths.stage("render_db"))
+    r = open_model(project.paths.root, rec.settings.get("model", "model/reference.obj"), project.frame)
     out = {}
     try:
         for q in queries:
@@ -68,20 +68,20 @@ def evaluate(project: Project | str | Path, ablation: str = "default", with_retr
         raise GtkitError(f"no localization run to evaluate: run 'gtkit localize DIR"
                          f"{'' if ablation == 'default' else ' --ablation ' + ablation}' first", status_file)
     status = json.loads(status_file.read_text())
-    truth_file = project.paths.truth / "poses.txt"
+    truth_file = project.paths.truth_poses
     truth = read_poses(truth_file)
     queries = status["queries"]
     names = [q["name"] for q in queries]
     missing_truth = [n for n in names if n not in truth]
     if missing_truth:
         raise GtkitError(f"{len(missing_truth)} queries have no true pose (e.g. {missing_truth[0]})", truth_file)
-    est = read_poses(run_dir / "poses.txt")
+    est = read_poses(run_dir / POSES)
     errors = pose_errors(est, truth, names)
     rep: dict = {"ablation": ablation, "n_queries": len(names), "n_localized": sum(1 for n in names if n in est)}
     rep.update(recall(errors, THRESHOLDS))
     rep.update(medians(errors))
     if with_retrieval:
-        intr_file = project.paths.truth / "intrinsics.txt"
+        intr_file = project.paths.truth_intrinsics
         intr = read_intrinsics(intr_file) if intr_file.is_file() else read_intrinsics(project.paths.cameras)
         ov = retrieval_overlaps(project, queries, truth, intr)
         correct = {k: v > OVERLAP_THRESHOLD for k, v in ov.items()}

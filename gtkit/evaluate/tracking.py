@@ -125,8 +125,8 @@ def simulate_detections(paths: Paths, out: Path, *, sigma_px: float = 1.0, mode:
     every zoom photo whose view holds a target that is not hidden from the camera (line of sight to
 a point at 80% of its height, tested on ``truth/world.ply``). Returns the number of detections."""
     truth = TruthTracks(paths.truth / "targets.csv")
-    poses = read_poses(paths.truth / "poses.txt")
-    cams = read_intrinsics(paths.truth / "intrinsics.txt")
+    poses = read_poses(paths.truth_poses)
+    cams = read_intrinsics(paths.truth_intrinsics)
     times = shot_times(paths)
     world = json.loads((paths.truth / "world.json").read_text()) if (paths.truth / "world.json").is_file() else {}
     sizes = {k: tuple(v["size"]) for k, v in world.get("targets", {}).items()}

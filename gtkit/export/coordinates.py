@@ -44,7 +44,7 @@ STAGE = "export_coordinates"
 HEIGHT_NOTE = "heights in metres as given by the inputs (GPS/DJI: ellipsoidal, WGS 84); not converted"
 # where the pose stages write their results: the pseudo-GT of the query photos (gtkit register)
 # and the georegistered reference block; all that exist are exported, the first wins a name clash
-POSE_CANDIDATES = ("register/poses.txt", "sfm_reference/poses.txt")
+POSE_STAGES = ("register", "sfm_reference")
 
 
 @dataclass
@@ -63,7 +63,7 @@ class GeoPoint:
 
 
 def default_pose_files(project: Project) -> list[Path]:
-    return [project.paths.work / rel for rel in POSE_CANDIDATES if (project.paths.work / rel).is_file()]
+    return [f for f in map(project.paths.poses, POSE_STAGES) if f.is_file()]
 
 
 def cameras_from_poses(paths: list[Path]) -> list[GeoPoint]:
@@ -212,7 +212,8 @@ def run(project: Project | str | Path, settings: CoordinatesSettings,
         return {p.name: p for p in sorted(out_dir.iterdir()) if p.is_file()}
     written: dict[str, Path] = {}
     if not pose_files:
-        log.warning("no pose file (give --poses; looked for work/%s)", ", work/".join(POSE_CANDIDATES))
+        log.warning("no pose file (give --poses; looked for %s)",
+                    ", ".join(str(project.paths.poses(s).relative_to(project.paths.root)) for s in POSE_STAGES))
     else:
         cams = cameras_from_poses(pose_files)
         if cams:

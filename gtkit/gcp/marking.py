@@ -29,6 +29,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import GtkitError
+from ..io.poses import POSES
 from ..pose import Pose
 from ..sfm.geometry import triangulate_clicks
 from ..sfm.similarity import Similarity, collinearity, umeyama
@@ -69,7 +70,7 @@ def load_block(paths) -> Block:
     from ..sfm.geometry import model_cameras, model_poses
 
     d = Path(paths.root) / "work" / "sfm_reference"
-    placed = (d / "model").is_dir() and (d / "poses.txt").is_file()
+    placed = (d / "model").is_dir() and (d / POSES).is_file()
     mdir = d / "model" if placed else d / "unplaced_model"
     if not mdir.is_dir():
         raise GtkitError("no reference block yet: run `gtkit sfm SITE --block reference` first", d)

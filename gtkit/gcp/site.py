@@ -93,7 +93,7 @@ def footprint(project) -> np.ndarray | None:
     from ..io.poses import read_poses
 
     P = project.paths
-    f = P.stage("sfm_reference") / "poses.txt"
+    f = P.reference_poses
     if f.is_file():
         C = np.array([p.center for p in read_poses(f).values()])
     else:

@@ -17,6 +17,12 @@ from ..errors import GtkitError
 from ..pose import Pose
 from .atomic import write_text
 
+# The file names of a pose set: every stage that places photos writes these into its folder
+# (work/<stage>/), the sample writes them into truth/; gtkit.project.Paths names the folders.
+POSES = "poses.txt"
+INTRINSICS = "intrinsics.txt"
+COVARIANCES = "covariances.txt"
+
 
 def _lines(path: Path):
     path = Path(path)

@@ -38,9 +38,9 @@ import numpy as np
 from ..camera import Camera
 from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json
-from ..io.poses import write_intrinsics, write_poses
+from ..io.poses import INTRINSICS, POSES, write_intrinsics, write_poses
 from ..model_files import model_fingerprint
-from ..project import (Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done,
+from ..project import (STAGE_RECORD, Project, file_fingerprint, mark_stage_done, settings_dict, settings_key, stage_done,
                        start_stage_clock)
 from ..render.frustum import ray_box_fraction
 from .executors import ExecutorSettings, iter_map, make_executor
@@ -509,7 +509,7 @@ def run(project: Project | str | Path, settings: RenderDbSettings,
         log.info("render-db: view settings changed; removing the old views")
         for sub in ("images", "depth"):
             shutil.rmtree(out / sub, ignore_errors=True)
-        for f in ("views.json", "poses.txt", "intrinsics.txt", "stage.json"):
+        for f in ("views.json", POSES, INTRINSICS, STAGE_RECORD):
             (out / f).unlink(missing_ok=True)
     write_json(sfile, sd)
     fractions: dict[str, float] = {}
@@ -615,8 +615,8 @@ def _write_views(out: Path, views: list[View], fractions: dict[str, float], min_
                 "a view with valid_fraction null is planned but not rendered (no query reaches it)",
         "views": [{**v.as_dict(), "valid_fraction": fractions.get(v.name),
                    "kept": fractions.get(v.name, -1.0) >= min_valid} for v in views]})
-    write_poses(out / "poses.txt", {f"{v.name}.jpg": v.pose() for v in kept}, header="render-db views")
-    write_intrinsics(out / "intrinsics.txt", {f"{v.name}.jpg": cam for v in kept})
+    write_poses(out / POSES, {f"{v.name}.jpg": v.pose() for v in kept}, header="render-db views")
+    write_intrinsics(out / INTRINSICS, {f"{v.name}.jpg": cam for v in kept})
     return kept
 
 
@@ -661,7 +661,7 @@ def load_grid(project: Project) -> tuple[Database, list[View], list[str]]:
     ``views.json``."""
     out = project.paths.stage(STAGE)
     vfile = out / "views.json"
-    if not vfile.is_file() or not (out / "stage.json").is_file():
+    if not vfile.is_file() or not (out / STAGE_RECORD).is_file():
         raise GtkitError("no rendered database: run 'gtkit render-db DIR' first", out)
     d = json.loads(vfile.read_text())
     f = d["camera"].split()

@@ -64,10 +64,10 @@ from ..camera import Camera
 from ..conventions import dji_to_rotation, gravity_in_camera
 from ..errors import GtkitError
 from ..io.atomic import atomic_path, write_json, write_text
-from ..io.poses import write_covariances, write_poses
+from ..io.poses import POSES, write_covariances, write_poses
 from ..pose import Pose
-from ..project import (Project, file_fingerprint, mark_stage_done, relative_paths, settings_dict, settings_key,
-                       stage_done, start_stage_clock)
+from ..project import (STAGE_RECORD, Project, file_fingerprint, mark_stage_done, read_stage_record, relative_paths,
+                       settings_dict, settings_key, stage_done, start_stage_clock)
 from .database import PAPER_PITCHES, Database, load_database
 from .executors import ExecutorSettings, SerialExecutor, iter_map, make_executor, run_map
 from .pnp import PnPSettings
@@ -440,7 +440,7 @@ def render_missing_views(project: Project, s: LocalizeSettings, names: list[str]
     _want, todo = database.reachable_not_rendered(project, planned, cand, {v.name for v in db.views}, db.camera,
                                                   db.root, s, names, cameras)
     if todo:
-        rec = json.loads((project.paths.stage(database.STAGE) / "stage.json").read_text())["settings"]
+        rec = read_stage_record(project.paths.stage(database.STAGE)).settings
         log.info("localize: %d database views these settings reach are not rendered yet: rendering them", len(todo))
         database.run(project, database.render_settings(rec), executor, localize_settings=s)
     return len(todo)
@@ -547,7 +547,7 @@ def run(project: Project | str | Path, settings: LocalizeSettings, ablation: str
     qcams = {n: [c.camera.to_line(), c.source] for n, c in qc.items()}
     cams = {n: _camera(line) for n, (line, _src) in qcams.items()}   # as the workers read them
     n_missing = render_missing_views(project, settings, names, cams, executor)
-    inputs = {"render_db": file_fingerprint(dbdir / "stage.json"), "queries": settings_key(names),
+    inputs = {"render_db": file_fingerprint(dbdir / STAGE_RECORD), "queries": settings_key(names),
               "cameras": settings_key(qcams), "feature_code": CODE_VERSION.get(settings.features.extractor, 1)}
     if not force and stage_done(out, settings, inputs):
         log.info("localize: up to date (%s)", out)
@@ -583,7 +583,7 @@ def run(project: Project | str | Path, settings: LocalizeSettings, ablation: str
     poses = {r["name"]: Pose.from_qt(r["q"], r["t"]) for r in results if r["ok"]}
     covs = {r["name"]: np.array(r["covariance"]).reshape(6, 6) for r in results if r["ok"] and "covariance" in r}
     out.mkdir(parents=True, exist_ok=True)
-    write_poses(out / "poses.txt", poses, header=f"gtkit localize ({ablation}); failures are absent, "
+    write_poses(out / POSES, poses, header=f"gtkit localize ({ablation}); failures are absent, "
                 "see status.json")
     write_covariances(out / "covariances.txt", covs)
     pairs = [f"{r['name']} {v} {k + 1}" for r in results

@@ -24,9 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GtkitError
+from ..io.poses import INTRINSICS, POSES
 from ..io.mesh import Mesh, write_obj, write_offset_sidecar
 from ..project import (Project, file_fingerprint, mark_stage_done, reset_peak_rss, settings_dict, settings_key,
-                       stage_done, start_stage_clock)
+                       read_stage_record, stage_done, start_stage_clock)
 from . import depth as D
 from . import fusion, patchmatch, surface, texture
 from .settings import ModelSettings
@@ -274,7 +275,7 @@ def _write_model(project: Project, mesh: Mesh, use: bool | None) -> Path:
 
 def _inputs(project: Project) -> dict:
     block = block_dir(project)
-    return {"poses": file_fingerprint(block / "poses.txt"), "intrinsics": file_fingerprint(block / "intrinsics.txt")}
+    return {"poses": file_fingerprint(block / POSES), "intrinsics": file_fingerprint(block / INTRINSICS)}
 
 
 def depth_folder(project: Project, settings: ModelSettings, method: str) -> Path:
@@ -303,9 +304,7 @@ def run(project: Project | str | Path, settings: ModelSettings, *, force: bool =
     n_photos = len(views) + len(skipped)
     inputs = _inputs(project)
     if not force and stage_done(work, settings, inputs) and use is None:
-        import json
-
-        return json.loads((work / "stage.json").read_text())["summary"]
+        return read_stage_record(work).summary
     start_stage_clock(work)
     if len(views) < 3:
         raise GtkitError(f"only {len(views)} usable registered photos in the reference block", block)

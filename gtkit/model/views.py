@@ -15,7 +15,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import GtkitError
-from ..io.poses import read_intrinsics, read_poses
+from ..io.poses import INTRINSICS, POSES, read_intrinsics, read_poses
 from ..pose import Pose
 from ..project import Project
 from .settings import ModelSettings
@@ -66,7 +66,7 @@ def check_georegistered(project: Project) -> Path:
         raise GtkitError(f"the reference block is not georegistered ({why}); a model in an arbitrary frame "
                          "would not fit the project: fix the GPS/GCPs and re-run `gtkit sfm --block reference`",
                          info)
-    for f in ("poses.txt", "intrinsics.txt"):
+    for f in (POSES, INTRINSICS):
         if not (out / f).is_file():
             raise GtkitError(f"reference block has no {f}", out)
     return out
@@ -114,8 +114,8 @@ def _depth_ranges(block: Path, poses: dict[str, Pose], cams: dict[str, Camera]) 
 def load_views(project: Project, settings: ModelSettings) -> tuple[dict[str, View], dict[str, str]]:
     """Registered reference photos as views; photos left out and why."""
     block = check_georegistered(project)
-    poses = read_poses(block / "poses.txt")
-    cams = read_intrinsics(block / "intrinsics.txt")
+    poses = read_poses(block / POSES)
+    cams = read_intrinsics(block / INTRINSICS)
     ranges = _depth_ranges(block, poses, cams)
     views, skipped = {}, {}
     for name in sorted(poses):

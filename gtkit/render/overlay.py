@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GtkitError
+from ..io.poses import INTRINSICS, POSES
 
 log = logging.getLogger(__name__)
 
@@ -336,7 +337,7 @@ class OverlaySettings:
 def pose_file_candidates(paths) -> list[Path]:
     """Where the register stage may have written pseudo-GT poses, most likely first."""
     reg = paths.stage("register")
-    return [reg / "poses.txt", reg / "pseudo_gt_poses.txt", paths.exports / "poses.txt"]
+    return [paths.pseudo_gt_poses, reg / "pseudo_gt_poses.txt", paths.exports / POSES]
 
 
 def default_pose_file(paths) -> Path | None:
@@ -346,7 +347,7 @@ def default_pose_file(paths) -> Path | None:
 
 def reference_block_pose_file(paths) -> Path | None:
     """The reference block's SfM poses (``work/sfm_reference/poses.txt``), if they exist."""
-    p = paths.stage("sfm_reference") / "poses.txt"
+    p = paths.reference_poses
     return p if p.is_file() else None
 
 
@@ -358,7 +359,7 @@ def intrinsics_for(paths, pose_file: Path | None) -> dict:
     if paths.cameras.is_file():
         cams.update(read_intrinsics(paths.cameras))
     if pose_file is not None:
-        side = Path(pose_file).parent / "intrinsics.txt"
+        side = Path(pose_file).parent / INTRINSICS
         if side.is_file():
             cams.update(read_intrinsics(side))
     return cams

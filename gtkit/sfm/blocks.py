@@ -24,7 +24,7 @@ from ..errors import GtkitError
 from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
 from ..io.odm import read_gcp_list
-from ..io.poses import read_intrinsics, write_intrinsics, write_poses
+from ..io.poses import INTRINSICS, POSES, read_intrinsics, write_intrinsics, write_poses
 from ..photo_positions import positions_and_accuracy
 from ..project import (Project, cpu_seconds, file_fingerprint, mark_stage_done, settings_dict, settings_key,
                        stage_done, start_stage_clock)
@@ -152,7 +152,7 @@ def reference_calibrations(project: Project, names: list[str]) -> dict[str, Came
     photos made, instead of calibrating itself from a handful."""
     from ..io.exif import camera_key
 
-    f = project.paths.stage(REFERENCE_STAGE) / "intrinsics.txt"
+    f = project.paths.intrinsics(REFERENCE_STAGE)
     if not f.is_file():
         return {}
     ref = read_intrinsics(f)
@@ -615,7 +615,7 @@ def _write_block_model(out: Path, rec, kind: str, summary: dict, label: str) -> 
     if kind == "reference" and "error" in summary.get("georegistration", {}):
         import shutil
 
-        for f in ("poses.txt", "intrinsics.txt"):
+        for f in (POSES, INTRINSICS):
             (out / f).unlink(missing_ok=True)
         shutil.rmtree(out / "model", ignore_errors=True)
         (out / "unplaced_model").mkdir(exist_ok=True)
@@ -623,8 +623,8 @@ def _write_block_model(out: Path, rec, kind: str, summary: dict, label: str) -> 
     else:
         (out / "model").mkdir(exist_ok=True)
         rec.write(out / "model")
-        write_poses(out / "poses.txt", model_poses(rec), header=f"{label}: {summary['frame']}")
-        write_intrinsics(out / "intrinsics.txt", model_cameras(rec))
+        write_poses(out / POSES, model_poses(rec), header=f"{label}: {summary['frame']}")
+        write_intrinsics(out / INTRINSICS, model_cameras(rec))
 
 
 def build_block(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings,
@@ -775,7 +775,7 @@ def run_queries(project: Project | str | Path, settings: SfmSettings, force: boo
             continue
         inputs = _inputs(project, names)
         # a sequence shot with a reference camera starts from its calibration (reference_calibrations)
-        inputs["reference_intrinsics"] = file_fingerprint(P.stage(REFERENCE_STAGE) / "intrinsics.txt")
+        inputs["reference_intrinsics"] = file_fingerprint(P.intrinsics(REFERENCE_STAGE))
         if not force and stage_done(out, settings, inputs):
             result[seq] = json.loads((out / "block.json").read_text())
             continue

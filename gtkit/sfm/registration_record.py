@@ -12,6 +12,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..errors import GtkitError
+
 CLICKED = "clicked tie points"
 AUTOMATIC = "automatic matches"
 SINGLE_PHOTOS = "single photos"
@@ -20,12 +22,33 @@ ERROR = "error"
 OUTCOMES = (CLICKED, AUTOMATIC, SINGLE_PHOTOS, NEEDS_CLICKS, ERROR)
 
 
-def read_registration(path: str | Path) -> dict | None:
-    """The record as written, or None where there is none (or it cannot be read as JSON)."""
+def read_registration(path: str | Path, strict: bool = False) -> dict | None:
+    """The record as written (``Paths.registration``), or None where there is none. One that
+    cannot be read as JSON is None too, or with ``strict`` a GtkitError naming the file."""
+    path = Path(path)
     try:
-        return json.loads(Path(path).read_text())
-    except (OSError, ValueError):
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
         return None
+    except (OSError, ValueError) as e:
+        if strict:
+            raise GtkitError(f"unreadable registration record ({e})", path) from None
+        return None
+    if not isinstance(data, dict):
+        if strict:
+            raise GtkitError("unreadable registration record (not a JSON object)", path)
+        return None
+    return data
+
+
+def tiepoints(record: dict | None) -> dict[str, dict]:
+    """Each clicked tie point's entry (``in_final_ba``, residuals) in the joint adjustment."""
+    return dict((record or {}).get("tiepoints") or {})
+
+
+def bad_tiepoints(record: dict | None) -> dict[str, dict]:
+    """The tie points the registration left out as outliers, with why."""
+    return dict((record or {}).get("bad_tiepoints") or {})
 
 
 def sequences(record: dict | None) -> dict[str, dict]:

@@ -56,14 +56,14 @@ def collect(project: Project) -> dict:
     P = project.paths
     ref = _load(P.stage(REFERENCE_STAGE) / "block.json")
     qsum = _load(P.stage(QUERIES_STAGE) / "summary.json") or {}
-    reg = _load(P.stage(REGISTER_STAGE) / "registration.json")
+    reg = record.read_registration(P.registration)
     from ..review import read_review  # review.json as the annotator writes it (gtkit.review)
 
     review = {n: r["status"] for n, r in read_review(P.review).items()}  # image -> accept|reject|needs-work
     rep: dict = {"project": project.name, "reference_block": ref, "query_blocks": qsum}
     est = {}
     if reg:
-        est = read_poses(P.stage(REGISTER_STAGE) / "poses.txt") if (P.stage(REGISTER_STAGE) / "poses.txt").is_file() else {}
+        est = read_poses(P.poses(REGISTER_STAGE)) if P.poses(REGISTER_STAGE).is_file() else {}
         rep.update({k: reg.get(k) for k in ("median_reproj_px", "mean_reproj_px", "median_tiepoint_reproj_px",
                                              "n_registered", "n_images", "sequences", "bad_tiepoints",
                                              "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba")})

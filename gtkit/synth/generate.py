@@ -147,9 +147,9 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
     t = time.perf_counter()
     allshots = ref + qshots
     write_intrinsics(paths.cameras, {sh.name: sh.camera for sh in allshots})
-    write_poses(paths.truth / "poses.txt", {sh.name: sh.pose for sh in allshots},
+    write_poses(paths.truth_poses, {sh.name: sh.pose for sh in allshots},
                 header="true poses of every photo (sample generator)")
-    write_intrinsics(paths.truth / "intrinsics.txt", {sh.name: sh.camera for sh in allshots})
+    write_intrinsics(paths.truth_intrinsics, {sh.name: sh.camera for sh in allshots})
     write_ply(paths.truth / "world.ply", mesh)
     Rzw, tzw = flights.zoom_from_wide(s)
     write_json(paths.truth / "rig.json", {

@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from ..project import Paths
 from .photo_metadata import _GPS_IFD, _rewrite, _segments, _write_segments, strip_metadata  # noqa: F401
 
 VARIANTS = ("no-gps", "no-focal", "flat-gcps", "checkpoints", "survey-geo", "no-gcps", "no-attitude", "consumer-gps",
@@ -161,7 +162,7 @@ def apply_variant(root: str | Path, name: str, seed: int = 0) -> None:
         from ..project import Project
 
         proj = Project.load(root)
-        truth = read_poses(root / "truth" / "poses.txt")
+        truth = read_poses(Paths(root).truth_poses)
         rows = [proj.frame.local_to_crs(p.center) for n, p in sorted(truth.items()) if n.startswith("reference/")]
         names = [n for n in sorted(truth) if n.startswith("reference/")]
         (root / "geo.txt").write_text(proj.frame.crs_spec + "\n" + "".join(
@@ -216,7 +217,7 @@ def _facade_proxy(root: Path, refs: list[Path], seed: int) -> None:
     from ..pose import Pose
 
     rng = np.random.default_rng(seed)
-    truth_f = root / "truth" / "poses.txt"
+    truth_f = Paths(root).truth_poses
     truth = read_poses(truth_f)
     ref_names = [n for n in sorted(truth) if n.startswith("reference/")]
     c0 = np.mean([truth[n].center for n in ref_names], axis=0)
@@ -237,7 +238,7 @@ def _rtk_few(root: Path, refs: list[Path], seed: int, keep: int = 8) -> None:
     from ..io.poses import read_poses
 
     rng = np.random.default_rng(seed)
-    truth = read_poses(root / "truth" / "poses.txt")
+    truth = read_poses(Paths(root).truth_poses)
     names = [f"reference/{p.name}" for p in refs]
     idx = np.unique(np.round(np.linspace(0, len(refs) - 1, keep)).astype(int))
     kept = {names[i] for i in idx}
@@ -271,7 +272,7 @@ def _nadir_heldout(root: Path, refs: list[Path], queries: list[Path], every: int
         moved[f"reference/{p.name}"] = f"queries/heldout/{p.name}"
     for f in ("tiepoints.json", "cameras.txt"):
         (root / f).unlink(missing_ok=True)
-    truth = root / "truth" / "poses.txt"
+    truth = Paths(root).truth_poses
     if truth.is_file():
         lines = truth.read_text().splitlines()
         extra = [moved[ln.split()[0]] + ln[len(ln.split()[0]):] for ln in lines

@@ -97,7 +97,7 @@ def load_inputs(project: Project, s: TrackSettings):
 
     P = project.paths
     det_path = resolve(project, s.detections, P.detections)
-    pose_path = resolve(project, s.poses, P.stage("localize") / "poses.txt")
+    pose_path = resolve(project, s.poses, P.localized_poses)
     if not pose_path.is_file():
         raise GtkitError("wide poses not found (run `gtkit localize` first or give --poses FILE)", pose_path)
     cov_path = resolve(project, s.covariances, pose_path.parent / "covariances.txt")

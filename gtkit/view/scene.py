@@ -39,6 +39,7 @@ from ..io.exif import prior_pose
 from ..io.poses import read_intrinsics, read_poses
 from ..pose import Pose
 from ..project import Project
+from ..sfm import registration_record
 from .model import view_model
 from .settings import LAYERS, SNAPSHOTS, ViewSettings  # noqa: F401 (LAYERS: part of this module's names)
 
@@ -142,7 +143,7 @@ def load_scene(project: Project | str | Path, settings: ViewSettings | None = No
     out.seconds["model"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     out.cameras = read_intrinsics(P.cameras) if P.cameras.is_file() else {}
-    refs = _poses(P.stage("sfm_reference") / "poses.txt")
+    refs = _poses(P.reference_poses)
     out.reference_source = "work/sfm_reference/poses.txt" if refs else "photo priors (GPS + gimbal)"
     ref_names = sorted(str(f.relative_to(P.images)) for f in P.reference_images.rglob("*")
                        if f.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif", ".tiff")) if P.reference_images.is_dir() else []
@@ -154,8 +155,8 @@ def load_scene(project: Project | str | Path, settings: ViewSettings | None = No
     q_names = query_photos(project)   # the project's query photos ([sfm] query_pattern)
     priors = prior_poses(project, q_names)
     kinds = {"prior": priors,
-             "pseudo_gt": {n: p for n, p in _poses(P.stage("register") / "poses.txt").items() if n.startswith("queries/")},
-             "localized": _poses(P.stage("localize") / "poses.txt")}
+             "pseudo_gt": {n: p for n, p in _poses(P.pseudo_gt_poses).items() if n.startswith("queries/")},
+             "localized": _poses(P.localized_poses)}
     out.query_poses = {k: v for k, v in kinds.items() if v}
     out.queries = {k: {n: p.center for n, p in v.items()} for k, v in out.query_poses.items()}
     rep = P.reports / "localization.json"
@@ -279,14 +280,10 @@ def _tiepoints(project: Project, out: SceneData, surface: _Surface) -> None:
         X = np.mean(hits, axis=0) if hits else _midpoint(rays)
         if X is not None:
             out.tiepoints[tp.id] = X
-    reg = P.stage("register") / "registration.json"
     out.tiepoint_source = "tiepoints.json (not registered yet)"
-    if reg.is_file():
-        try:
-            d = json.loads(reg.read_text())
-            table, bad = d.get("tiepoints") or {}, d.get("bad_tiepoints") or {}
-        except (json.JSONDecodeError, AttributeError) as e:
-            raise GtkitError(f"unreadable registration report ({e})", reg) from None
+    d = registration_record.read_registration(P.registration, strict=True)
+    if d is not None:
+        table, bad = registration_record.tiepoints(d), registration_record.bad_tiepoints(d)
         out.tiepoints_flagged = {t for t in out.tiepoints if t in bad or not (table.get(t) or {}).get("in_final_ba", False)}
         out.tiepoint_source = "work/register/registration.json"
 

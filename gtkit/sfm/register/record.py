@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ...io.atomic import write_json
-from ...io.poses import write_covariances, write_intrinsics, write_poses
+from ...io.poses import COVARIANCES, INTRINSICS, POSES, write_covariances, write_intrinsics, write_poses
 from ...project import Project, mark_stage_done
 from ..crossmatch import AUTO_PREFIX
 from ..guided_clicks import (COVARIANCE_FILE, GUIDANCE_FILE, GuidanceSettings, guidance, reference_views, save_states,
@@ -105,7 +105,7 @@ def joint_record(j: Joint, summary, per_image: dict, tie_rows: dict, bad: dict, 
 
 def write_empty(out: Path, result: dict, settings: RegisterSettings, inputs: dict) -> dict:
     """The record of a run that registered no sequence (the outputs of an earlier run removed)."""
-    for f in ("poses.txt", "intrinsics.txt", "covariances.txt", GUIDANCE_FILE, COVARIANCE_FILE):
+    for f in (POSES, INTRINSICS, COVARIANCES, GUIDANCE_FILE, COVARIANCE_FILE):
         (out / f).unlink(missing_ok=True)
     write_json(out / "registration.json", result)
     mark_stage_done(out, settings, inputs, n_registered=0)
@@ -118,8 +118,8 @@ def write_record(out: Path, project: Project, j: Joint, cov, ref_rec, poses: dic
     rec = j.rec
     (out / "model").mkdir(exist_ok=True)
     rec.write(out / "model")
-    write_poses(out / "poses.txt", poses, header="pseudo-GT poses of the query photos (gtkit register)")
-    write_intrinsics(out / "intrinsics.txt", cams)
+    write_poses(out / POSES, poses, header="pseudo-GT poses of the query photos (gtkit register)")
+    write_intrinsics(out / INTRINSICS, cams)
     if covs:
         write_covariances(out / "covariances.txt", covs)
     from ...queries import query_photos

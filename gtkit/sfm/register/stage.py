@@ -4,7 +4,6 @@ photos, the joint adjustment choosing which of them to keep (:mod:`.tie_bias`, :
 photo's uncertainty (:mod:`.uncertainty`) and the record (:mod:`.record`)."""
 from __future__ import annotations
 
-import json
 import logging
 import time
 from pathlib import Path
@@ -19,6 +18,7 @@ from ..blocks import QUERIES_STAGE, REFERENCE_STAGE
 from ..crossmatch import cross_matches, reference_point_of
 from ..extend_reference import extension_ties
 from ..geometry import model_cameras, model_poses
+from ..registration_record import read_registration
 from ..tie_surface import smooth_surface_filter
 from .record import _count_query_images, joint_record, tie_table, write_empty, write_record
 from .reference import ReferenceBlock
@@ -65,7 +65,7 @@ def run(project: Project | str | Path, settings: RegisterSettings, force: bool =
     model = _reference_model(P) if settings.cross.enabled and settings.smooth_surface.enabled else None
     inputs = _inputs(P, ref_dir, seq_dirs, model)
     if not force and stage_done(out, settings, inputs):
-        return json.loads((out / "registration.json").read_text())
+        return read_registration(project.paths.registration, strict=True)
     start_stage_clock(out)   # (also under --force): its log goes to work/register/log.txt
     t0 = time.time()
     tiepoints = read_tiepoints(P.tiepoints) if P.tiepoints.is_file() else []   # no file: no clicks
