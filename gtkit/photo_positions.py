@@ -11,9 +11,11 @@ from pathlib import Path
 import numpy as np
 
 from .errors import GtkitError
+from .geo import GeoFrame
 from .io.exif import PhotoMeta, read_photo_meta
 from .io.odm import GeoEntry, read_geo_txt
-from .project import Project
+from .pose import Pose
+from .project import Paths, Project
 
 
 @dataclass(frozen=True)
@@ -24,18 +26,25 @@ class PhotoPosition:
 
 
 class PhotoPositions:
-    """The photos' positions of one project; ``geo.txt`` is read once, when first needed."""
+    """The photos' positions of one project; ``geo.txt`` is read once, when first needed.
+    ``PhotoPositions(project)``, or ``PhotoPositions.of(paths, frame)`` where only those are at hand."""
 
     def __init__(self, project: Project):
-        self.project = project
+        self.paths, self.frame = project.paths, project.frame
         self._geo: dict[str, GeoEntry] | None = None
+
+    @classmethod
+    def of(cls, paths: Paths, frame: GeoFrame) -> "PhotoPositions":
+        new = cls.__new__(cls)
+        new.paths, new.frame, new._geo = paths, frame, None
+        return new
 
     @property
     def geo(self) -> dict[str, GeoEntry]:
         """``geo.txt``'s lines by image name ({} without the file)."""
         if self._geo is None:
-            P = self.project.paths
-            self._geo = read_geo_txt(P.geo_txt, self.project.frame) if P.geo_txt.is_file() else {}
+            P = self.paths
+            self._geo = read_geo_txt(P.geo_txt, self.frame) if P.geo_txt.is_file() else {}
         return self._geo
 
     def from_geo_txt(self, name: str) -> PhotoPosition | None:
@@ -52,10 +61,28 @@ class PhotoPositions:
         p = self.from_geo_txt(name)
         if p is not None:
             return p
-        m = meta if meta is not None else read_photo_meta(self.project.paths.images / name, require=())
+        m = meta if meta is not None else read_photo_meta(self.paths.images / name, require=())
         if m.has_gps and m.altitude is not None:
-            return PhotoPosition(self.project.frame.wgs84_to_local(m.lon, m.lat, m.altitude), "exif")
+            return PhotoPosition(self.frame.wgs84_to_local(m.lon, m.lat, m.altitude), "exif")
         return None
+
+    def prior_pose(self, name: str) -> Pose | None:
+        """The pose the photo's metadata claims: its position (geo.txt first, else EXIF GPS and
+        altitude) with the DJI gimbal's attitude; None where the photo cannot say (unreadable, no
+        gimbal angles, no position)."""
+        try:
+            m = read_photo_meta(self.paths.images / name)
+        except GtkitError:
+            return None
+        if not m.has_gimbal:
+            return None
+        try:
+            p = self.get(name, m)
+        except GtkitError:
+            return None
+        if p is None:
+            return None
+        return Pose.from_dji(m.gimbal_yaw, m.gimbal_pitch, m.gimbal_roll, p.xyz)
 
     def centre(self, name: str) -> np.ndarray | None:
         """The photo's position, None without one or where geo.txt does not place it and the photo

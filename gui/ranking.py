@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from gtkit.errors import GtkitError
-from gtkit.io.exif import prior_pose
+from gtkit.photo_positions import PhotoPositions
 from gtkit.pose import Pose
 
 log = logging.getLogger(__name__)
@@ -64,6 +64,7 @@ class OverlapRanker:
 
     def __init__(self, paths, frame, poses: dict[str, Pose] | None = None, cache_file: Path | None = None):
         self.paths, self.frame = paths, frame
+        self.positions = PhotoPositions.of(paths, frame)   # geo.txt first, else EXIF GPS
         self.poses = dict(poses or {})
         self.z_ground = ground_height(paths, frame)
         self._points: dict[str, np.ndarray | None] = {}
@@ -82,7 +83,7 @@ class OverlapRanker:
     def pose(self, name: str) -> Pose | None:
         if name in self.poses:
             return self.poses[name]
-        return prior_pose(self.paths.images / name, self.frame)
+        return self.positions.prior_pose(name)
 
     def _stamp(self, name: str) -> str:
         try:

@@ -68,3 +68,30 @@ def test_register_prior_takes_the_geo_txt_position(tmp_path):
     np.testing.assert_allclose(near[1].center, [geo[0], geo[1], 50.0], atol=1e-6)
     exif = FRAME.wgs84_to_local(-91.995, 46.843, 200.0)
     np.testing.assert_allclose(ref.attitude_search(B)[0][1].center, exif, atol=1e-6)
+
+
+def test_prior_pose_is_the_geo_txt_position_with_the_gimbal_attitude(tmp_path):
+    """The pose the photo's metadata claims, as the registration's priors, the 3D view and the
+    annotator's reference ranking read it: geo.txt's position where it places the photo, the DJI
+    gimbal's attitude; a photo without gimbal angles claims no pose."""
+    from gui.ranking import OverlapRanker
+
+    from gtkit.pose import Pose
+    from gtkit.view.scene import prior_poses
+
+    proj = _project(tmp_path)
+    gimbal = {"GimbalYawDegree": 40.0, "GimbalPitchDegree": -60.0, "GimbalRollDegree": 0.0}
+    for n in (A, B):
+        write_jpeg_with_meta(proj.paths.images / n, np.zeros((40, 60, 3), np.uint8), lat=46.843, lon=-91.995,
+                             alt=200.0, dji=gimbal)
+    exif = FRAME.wgs84_to_local(-91.995, 46.843, 200.0)
+    want = {A: Pose.from_dji(40.0, -60.0, 0.0, exif + [30.0, 0.0, 5.0]), B: Pose.from_dji(40.0, -60.0, 0.0, exif)}
+    readers = {"photo_positions": PhotoPositions(proj).prior_pose, "view": lambda n: prior_poses(proj, [n])[n],
+               "annotator": OverlapRanker(proj.paths, proj.frame).pose}
+    for who, read in readers.items():
+        for n, p in want.items():
+            got = read(n)
+            np.testing.assert_allclose(got.center, p.center, atol=1e-3, err_msg=f"{who} {n}")   # geo.txt: mm
+            np.testing.assert_allclose(got.R, p.R, atol=1e-9, err_msg=f"{who} {n}")
+    write_jpeg_with_meta(proj.paths.images / B, np.zeros((40, 60, 3), np.uint8), lat=46.843, lon=-91.995, alt=200.0)
+    assert PhotoPositions(proj).prior_pose(B) is None          # GPS but no gimbal: no attitude to claim

@@ -211,17 +211,3 @@ def capture_seconds(stamp: str | None) -> float | None:
         return dt.datetime.strptime(stamp.strip()[:19], "%Y:%m:%d %H:%M:%S").timestamp()
     except ValueError:
         return None
-
-
-def prior_pose(path: str | Path, frame):
-    """The pose a photo's metadata claims (EXIF GPS position, DJI gimbal attitude) in ``frame``'s
-    world, or None when the photo cannot say (unreadable, no GPS, no gimbal angles, no altitude)."""
-    from ..pose import Pose
-
-    try:
-        m = read_photo_meta(path)
-    except GtkitError:
-        return None
-    if not (m.has_gps and m.has_gimbal) or m.altitude is None:
-        return None
-    return Pose.from_dji(m.gimbal_yaw, m.gimbal_pitch, m.gimbal_roll, frame.wgs84_to_local(m.lon, m.lat, m.altitude))

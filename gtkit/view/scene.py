@@ -35,8 +35,8 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import GtkitError
-from ..io.exif import prior_pose
 from ..io.poses import read_intrinsics, read_poses
+from ..photo_positions import PhotoPositions
 from ..pose import Pose
 from ..project import Project
 from ..sfm import registration_record
@@ -95,7 +95,8 @@ def _poses(path: Path) -> dict[str, Pose]:
 
 
 def prior_poses(project: Project, names: list[str]) -> dict[str, Pose]:
-    """The poses the photos' metadata claim (:func:`gtkit.io.exif.prior_pose`), kept in
+    """The poses the photos' metadata claim (:meth:`gtkit.photo_positions.PhotoPositions.prior_pose`:
+    geo.txt's position first, else EXIF GPS, with the gimbal's attitude), kept in
     ``work/view/priors.npz`` by the photo's size and modification time: reading the EXIF of 729
     medium-sample photos takes about 1 s, the cache 0.03 s."""
     P = project.paths
@@ -109,11 +110,14 @@ def prior_poses(project: Project, names: list[str]) -> dict[str, Pose]:
     except (OSError, KeyError, ValueError):
         known = {}
     out, changed = {}, False
+    positions = PhotoPositions(project)
+    geo = P.geo_txt.stat() if P.geo_txt.is_file() else None     # a changed geo.txt moves the priors
+    geo_key = f"-geo{geo.st_size}-{geo.st_mtime_ns}" if geo else ""
     for n in names:
         st = (P.images / n).stat()
-        key = f"{st.st_size}-{st.st_mtime_ns}"
+        key = f"{st.st_size}-{st.st_mtime_ns}{geo_key}"
         if n not in known or known[n][0] != key:
-            p = prior_pose(P.images / n, project.frame)
+            p = positions.prior_pose(n)
             known[n], changed = (key, None if p is None else (p.R, p.t)), True
         if known[n][1] is not None:
             out[n] = Pose(*known[n][1])

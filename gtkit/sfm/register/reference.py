@@ -12,7 +12,6 @@ import pycolmap
 
 from ...camera import Camera
 from ...errors import GtkitError
-from ...io.exif import prior_pose
 from ...photo_positions import PhotoPositions
 from ...pose import Pose
 from ...project import Project
@@ -113,7 +112,7 @@ class ReferenceBlock:
         settings, P = self.settings, self.P
         if not settings.cross.enabled or not self.db.is_file():
             return None, 0, "automatic matching is off or the reference database is missing"
-        priors = candidate_priors(name, qrec, lambda n: prior_pose(P.images / n, self.project.frame))
+        priors = candidate_priors(name, qrec, self.positions.prior_pose)
         # its nearest registered neighbours' poses (in flight order), for a wider search
         order = sorted({im.name for im in qrec.images.values() if im.has_pose} | {name})
         k = order.index(name)
@@ -170,7 +169,7 @@ class ReferenceBlock:
 
         def priors(name):
             out = []
-            meta = prior_pose(P.images / name, self.project.frame)
+            meta = self.positions.prior_pose(name)
             if meta is not None:
                 out.append(("metadata", meta))
             if georegistered:
