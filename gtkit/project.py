@@ -36,6 +36,7 @@ from .io.atomic import write_json, write_text
 from .io.poses import INTRINSICS, POSES
 
 PROJECT_FILE = "project.toml"
+IMAGE_EXT = (".jpg", ".jpeg", ".png", ".tif", ".tiff")   # what counts as a photo under images/ (lower case)
 
 
 class Paths:

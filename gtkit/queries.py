@@ -1,6 +1,6 @@
 """The query photos of a project and their intrinsics, each decided in one place.
 
-Which photos are queries: ``[sfm] query_pattern`` (:class:`gtkit.sfm.blocks.SfmSettings`, default
+Which photos are queries: ``[sfm] query_pattern`` (:data:`QUERY_PATTERN`, the SfM settings' default too:
 ``"*_W.*"``; ``gtkit init`` writes ``"*"`` for sequences without ``_W`` / ``_Z`` names), a glob
 inside every ``images/queries/<seq>/`` folder. The query SfM, registration, localization and the
 database grid all read :func:`query_photos`.
@@ -28,17 +28,28 @@ from .camera import Camera
 from .errors import GtkitError
 from .io.exif import camera_key  # noqa: F401 (named here too: which query photos share a camera)
 from .io.poses import INTRINSICS
-from .project import Project
+from .project import IMAGE_EXT, Project
+from .settings import apply_overrides
 
-IMAGE_EXT = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+
+QUERY_PATTERN = "*_W.*"   # [sfm] query_pattern's default (gtkit.sfm.blocks.SfmSettings takes it from here)
+
+
+@dataclass(frozen=True)
+class _QuerySelection:
+    query_pattern: str = QUERY_PATTERN
 
 
 def query_pattern(project: Project) -> str:
-    """``[sfm] query_pattern`` resolved (project.toml > default)."""
-    from .settings import resolve
-    from .sfm.blocks import SfmSettings
-
-    return resolve(SfmSettings(), "sfm", project).query_pattern
+    """``[sfm] query_pattern`` resolved (project.toml > default; no flag sets it), checked as the
+    SfM's own settings check it, without reading the rest of ``[sfm]`` (which the SfM checks)."""
+    sec = project.section("sfm") if project is not None else {}
+    if "query_pattern" not in sec:
+        return QUERY_PATTERN
+    got = apply_overrides(_QuerySelection(), {"query_pattern": sec["query_pattern"]}, "sfm",
+                          project.paths.project_toml)
+    return got.query_pattern
 
 
 def query_photos(project: Project, seq: str | None = None, pattern: str | None = None) -> list[str]:

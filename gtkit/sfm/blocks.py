@@ -26,10 +26,11 @@ from ..io.exif import read_photo_meta
 from ..io.odm import read_gcp_list
 from ..io.poses import INTRINSICS, POSES, read_intrinsics, write_intrinsics, write_poses
 from ..photo_positions import positions_and_accuracy
-from ..project import (Project, cpu_seconds, file_fingerprint, mark_stage_done, settings_dict, settings_key,
+from ..project import (IMAGE_EXT, Project, cpu_seconds, file_fingerprint, mark_stage_done, settings_dict, settings_key,
                        stage_done, start_stage_clock)
 from . import quiet_colmap
 from ..progress import progress_bar
+from ..queries import QUERY_PATTERN
 from .database import (CameraGroup, FeatureSettings, MatchSettings, build_database, failure_reason,
                        image_diagnostics, match_pairs, read_descriptors)
 from .geometry import RegistrationError, model_cameras, model_poses
@@ -40,7 +41,6 @@ from .reference_report import write_reference_report
 
 log = logging.getLogger(__name__)
 
-IMAGE_EXT = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 REFERENCE_STAGE = "sfm_reference"
 QUERIES_STAGE = "sfm_queries"
 
@@ -56,7 +56,7 @@ class SfmSettings:
     # distortion, principal point); yes: refine all; no: none (see intrinsics_policy)
     refine_intrinsics: str = "auto"
     gps_priors_in_ba: bool = True     # GPS positions as weak pose priors in the mapper's BA (refined cameras only)
-    query_pattern: str = "*_W.*"      # which photos of a query sequence form its block
+    query_pattern: str = QUERY_PATTERN  # which photos of a query sequence form its block ("*_W.*")
     pair_by_footprint: bool = True    # spatial pairs by where photos look (gimbal), not where they were taken
     gps_prior_sigma_m: float = 5.0    # sigma of the CARTESIAN pose priors (geo.txt accuracy where stated)
     init_min_tri_angle_deg: float = 4.0  # mapper's initial pair (COLMAP: 16; short UAV baselines need less)

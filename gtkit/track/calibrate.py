@@ -18,13 +18,12 @@ from ..camera import Camera
 from ..errors import GtkitError
 from ..io.exif import read_photo_meta
 from ..io.poses import read_intrinsics
-from ..project import Project, file_fingerprint, mark_stage_done, stage_done
+from ..project import IMAGE_EXT, Project, file_fingerprint, mark_stage_done, stage_done
 from .rig import Rig, RigCalibrationSettings, ZoomSetting, calibrate_pairs
 
 log = logging.getLogger(__name__)
 
 WIDE_SUFFIX, ZOOM_SUFFIX = "_W", "_Z"
-IMAGE_EXT = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 
 
 def wide_name_for(zoom_name: str) -> str | None:

@@ -38,7 +38,7 @@ from ..errors import GtkitError
 from ..io.poses import read_intrinsics, read_poses
 from ..photo_positions import PhotoPositions
 from ..pose import Pose
-from ..project import Project
+from ..project import IMAGE_EXT, Project
 from ..sfm import registration_record
 from .model import view_model
 from .settings import LAYERS, SNAPSHOTS, ViewSettings  # noqa: F401 (LAYERS: part of this module's names)
@@ -150,7 +150,7 @@ def load_scene(project: Project | str | Path, settings: ViewSettings | None = No
     refs = _poses(P.reference_poses)
     out.reference_source = "work/sfm_reference/poses.txt" if refs else "photo priors (GPS + gimbal)"
     ref_names = sorted(str(f.relative_to(P.images)) for f in P.reference_images.rglob("*")
-                       if f.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif", ".tiff")) if P.reference_images.is_dir() else []
+                       if f.suffix.lower() in IMAGE_EXT) if P.reference_images.is_dir() else []
     if not refs:
         refs = prior_poses(project, ref_names)
     out.reference = {n: (p, out.cameras.get(n)) for n, p in refs.items()}
