@@ -7,7 +7,10 @@ as ``gcp/points.txt`` (clicked later in the annotator's GCP page).
 The CRS is the one given, else the CRS line of the GCP / GCP coordinates / geo file, else the UTM
 zone of the photos' GPS; the local origin is the data's centroid (rounded to 1 m, height 0). Returns what was found
 and what is missing, for the command to print; nothing is written when the input cannot make a
-project (one clear error naming the file and the reason).
+project (one error listing every problem: each bad photo with its cause, each bad line of the GCP /
+geo / cameras files; :mod:`gtkit.input_check`). ``skip_bad_photos`` leaves the bad photos out
+knowingly: the report counts and names them and ``project.toml`` lists them
+(``[imports.photos.left_out]``, name -> cause).
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import GtkitError
+from .input_check import BadInputs, bad_photos_error, photo_problem
 from .gcp.points import check_inside, points_path, read_points, write_points
 from .geo import GeoFrame, parse_crs, utm_epsg
 from .io.exif import read_photo_meta
@@ -40,6 +44,7 @@ class InitReport:
     cameras: int = 0
     missing: list = field(default_factory=list)     # what is missing, in words
     notes: list = field(default_factory=list)
+    left_out: dict = field(default_factory=dict)    # bad photos left out (--skip-bad-photos): name -> cause
 
 
 def _photos(folder: Path) -> list[Path]:
@@ -51,8 +56,53 @@ def _photos(folder: Path) -> list[Path]:
     return out
 
 
-def _scan(photos: list[Path]) -> tuple[dict, list]:
-    metas = [read_photo_meta(p) for p in photos]
+def _cause(e: GtkitError) -> str:
+    """A GtkitError's message without the file it names (the listing names it)."""
+    msg = str(e)
+    return msg[len(f"{e.path}: "):] if e.path is not None and msg.startswith(f"{e.path}: ") else msg
+
+
+def _check_photos(groups: dict[str, list[Path]]) -> tuple[dict[Path, object], dict[str, str]]:
+    """Every photo looked at: ({path: metadata} of the good ones, {'<group>/<name>': cause} of the bad)."""
+    metas, bad = {}, {}
+    for label, photos in groups.items():
+        for p in photos:
+            why = photo_problem(p)
+            if why is None:
+                try:
+                    metas[p] = read_photo_meta(p)
+                except GtkitError as e:
+                    why = _cause(e)
+            if why is not None:
+                bad[f"{label}/{p.name}"] = why
+    return metas, bad
+
+
+def _check_files(gcp, geo, cameras, gcp_points) -> list[str]:
+    """Every line of every given file parsed (in its own CRS: the project's is not decided yet);
+    one message per file with problems, each listing all its bad lines."""
+    from .io.poses import read_intrinsics
+
+    def frame_of(f):
+        try:
+            spec = read_crs(f) if f is not gcp_points else (_points_crs(f) or "EPSG:3857")
+        except GtkitError:
+            spec = "EPSG:3857"       # the reader names the bad CRS line itself
+        return GeoFrame(spec, (0.0, 0.0, 0.0))
+
+    out = []
+    for f, read in ((gcp, lambda f: read_gcp_list(f, frame_of(f))), (geo, lambda f: read_geo_txt(f, frame_of(f))),
+                    (cameras, read_intrinsics), (gcp_points, lambda f: read_points(f, frame_of(f)))):
+        if f is not None:
+            try:
+                read(f)
+            except GtkitError as e:
+                out.append(str(e))
+    return out
+
+
+def _scan(photos: list[Path], known: dict) -> tuple[dict, list]:
+    metas = [known[p] for p in photos]
     sizes = sorted({f"{m.width}x{m.height}" for m in metas})
     return ({"photos": len(photos), "gps": sum(m.has_gps for m in metas),
              "dji_xmp": sum(m.has_gimbal for m in metas),
@@ -86,24 +136,46 @@ def _place(src: Path, dst: Path, copy: bool) -> None:
         dst.symlink_to(src.resolve())
 
 
-def init_project(root: str | Path, reference: str | Path, queries: list[str | Path] = (), crs: str | None = None,
-                 gcp: str | Path | None = None, geo: str | Path | None = None, cameras: str | Path | None = None,
-                 copy: bool = False, name: str | None = None, gcp_points: str | Path | None = None) -> InitReport:
-    root = Path(root)
-    if (root / PROJECT_FILE).exists():
-        raise GtkitError("already a gtkit project (project.toml exists); use another folder", root)
+def _usable_inputs(reference, queries, gcp, geo, cameras, gcp_points, skip_bad_photos: bool):
+    """(reference photos, {seq: photos}, {photo: metadata}, {bad photo left out: cause}) after every
+    photo and every file line is checked; every problem found is raised in one :class:`BadInputs`."""
     ref_photos = _photos(Path(reference))
     seqs = {Path(q).name: _photos(Path(q)) for q in queries}
     if len(seqs) != len(queries):
         raise GtkitError("two query folders have the same name; each sequence needs its own folder name")
-    for f in (gcp, geo, cameras, gcp_points):
-        if f is not None and not Path(f).is_file():
-            raise GtkitError("file not found", f)
-    rep = InitReport(root)
-    rep.reference, metas = _scan(ref_photos)
+    missing = [str(f) for f in (gcp, geo, cameras, gcp_points) if f is not None and not Path(f).is_file()]
+    if missing:
+        raise GtkitError(f"file not found: {', '.join(missing)}")
+    known, bad = _check_photos({"reference": ref_photos, **{f"queries/{s}": ph for s, ph in seqs.items()}})
+    problems = _check_files(gcp, geo, cameras, gcp_points)
+    if bad and not skip_bad_photos:
+        problems.insert(0, str(bad_photos_error(bad, None, "replace them, or leave them out with --skip-bad-photos")))
+    if problems:
+        n = len(problems)
+        raise BadInputs((f"{n} inputs have problems (nothing was written): " if n > 1 else "nothing was written: ")
+                        + " | ".join(problems), None, bad)
+    ref_photos = [p for p in ref_photos if p in known]
+    seqs = {s: [p for p in ph if p in known] for s, ph in seqs.items()}
+    if not ref_photos:
+        raise BadInputs(f"none of the {len(bad)} reference photos can be used", reference, bad)
+    return ref_photos, {s: ph for s, ph in seqs.items() if ph}, known, bad
+
+
+def init_project(root: str | Path, reference: str | Path, queries: list[str | Path] = (), crs: str | None = None,
+                 gcp: str | Path | None = None, geo: str | Path | None = None, cameras: str | Path | None = None,
+                 copy: bool = False, name: str | None = None, gcp_points: str | Path | None = None,
+                 skip_bad_photos: bool = False) -> InitReport:
+    root = Path(root)
+    if (root / PROJECT_FILE).exists():
+        raise GtkitError("already a gtkit project (project.toml exists); use another folder", root)
+    ref_photos, seqs, known, bad = _usable_inputs(reference, queries, gcp, geo, cameras, gcp_points, skip_bad_photos)
+    rep = InitReport(root, left_out=bad)
+    for s in {Path(q).name for q in queries} - set(seqs):
+        rep.notes.append(f"query sequence {s}: every photo is bad and left out, so it is not in the project")
+    rep.reference, metas = _scan(ref_photos, known)
     q_metas = []
     for s, photos in seqs.items():
-        info, m = _scan(photos)
+        info, m = _scan(photos, known)
         q_metas += m
         wide = [p for p in photos if p.stem.upper().endswith("_W")]
         zoom = [p for p in photos if p.stem.upper().endswith("_Z")]
@@ -221,6 +293,7 @@ def init_project(root: str | Path, reference: str | Path, queries: list[str | Pa
         write_points(points_path(P), points, frame)
     imports = {"imports": {"photos": {"reference": str(Path(reference).resolve()),
                                       "queries": [str(Path(q).resolve()) for q in queries],
-                                      "mode": "copied" if copy else "linked"}}}
+                                      "mode": "copied" if copy else "linked",
+                                      **({"left_out": dict(bad)} if bad else {})}}}
     Project.create(root, frame, name or root.resolve().name, extra={**extra, **imports})
     return rep

@@ -77,6 +77,7 @@ def run(root: str | Path, opts: RunOptions | None = None, progress: Callable[[St
     opts = opts or RunOptions()
     project = Project.load(root)
     todo = selected(opts)
+    check_photos(project, todo)
     results: list[StageResult] = []
     t_all = time.time()
     failed = None
@@ -118,6 +119,15 @@ def run(root: str | Path, opts: RunOptions | None = None, progress: Callable[[St
     if failed is not None:
         raise failed
     return summary
+
+
+def check_photos(project: Project, todo: list[str]) -> None:
+    """Every photo the chosen stages read, looked at before the first stage runs: all bad ones (in
+    every folder) named in one error (:mod:`gtkit.input_check`), not one stage at a time."""
+    from .input_check import require_good_photos
+
+    folders = {r[len("images/"):].strip("/") for n in todo for r in STAGE[n].reads if r.startswith("images/")}
+    require_good_photos(project, tuple(sorted(folders)))
 
 
 def _load(path: Path) -> dict | None:

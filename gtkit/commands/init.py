@@ -11,7 +11,8 @@ def register(sub):
         description="Make a project folder from a folder of reference photos, optional query sequences\n"
                     "(one folder each; wide/zoom photos paired by *_W / *_Z names) and optional\n"
                     "OpenDroneMap gcp_list.txt / geo.txt and a cameras.txt. Photos are linked (--copy copies).\n"
-                    "CRS: --crs, else the GCP / geo file's first line, else the UTM zone of the photos' GPS.")
+                    "CRS: --crs, else the GCP / geo file's first line, else the UTM zone of the photos' GPS.\n"
+                    "Every photo and every line of the files is checked first; all problems are listed at once.")
     p.add_argument("project", help="the new project folder")
     p.add_argument("--reference", required=True, metavar="PHOTOS", help="folder of the reference (oblique) photos")
     p.add_argument("--queries", nargs="*", default=[], metavar="SEQ_DIR", help="query sequence folders")
@@ -23,6 +24,9 @@ def register(sub):
     p.add_argument("--cameras", default=None, metavar="FILE", help="cameras.txt (fixed calibrations)")
     p.add_argument("--copy", action="store_true", help="copy the photos instead of linking them")
     p.add_argument("--name", default=None, help="project name (default: the folder's name)")
+    p.add_argument("--skip-bad-photos", action="store_true",
+                   help="leave out photos that cannot be used (empty, not an image, truncated, unreadable) instead "
+                        "of refusing; they are listed in project.toml [imports.photos.left_out]")
     p.set_defaults(func=run)
 
 
@@ -30,7 +34,7 @@ def run(args):
     from ..project_init import init_project
 
     r = init_project(args.project, args.reference, args.queries, args.crs, args.gcp, args.geo, args.cameras,
-                     args.copy, args.name, args.gcp_points)
+                     args.copy, args.name, args.gcp_points, args.skip_bad_photos)
     ref = r.reference
     print(f"project {r.root}: CRS {r.crs} (from {r.crs_from}), origin {r.origin[0]:.0f} {r.origin[1]:.0f}")
     print(f"reference photos: {ref['photos']} ({', '.join(ref['sizes'])}); GPS {ref['gps']}, DJI XMP {ref['dji_xmp']}, "
@@ -51,6 +55,11 @@ def run(args):
               f"{r.geo['with_accuracy']} with accuracy columns")
     if r.cameras:
         print(f"cameras.txt: {r.cameras} calibrations (kept fixed)")
+    if r.left_out:
+        from ..input_check import listing
+
+        print(f"left out {len(r.left_out)} bad photo{'s' if len(r.left_out) != 1 else ''} (--skip-bad-photos; listed in "
+              f"project.toml [imports.photos.left_out]): {listing(r.left_out, shown=len(r.left_out))}")
     for n in r.notes:
         print(f"note: {n}")
     for m in r.missing:

@@ -26,7 +26,7 @@ def register(sub):
 def run(args):
     from ..localize import localize
     from ..project import Project
-    from ..stages import settings_for
+    from ..stages import STAGE, settings_for
     from .render_db import executor_settings
 
     # the ablation's settings < project.toml [localize] < the flags given (gtkit.stages.settings_for)
@@ -34,5 +34,6 @@ def run(args):
     s = settings_for("localize", project, base=localize.settings_for(args.ablation), cli=
                 {"top_k": args.top_k, "gps_radius_m": args.gps_radius, "query_subset": args.queries,
                  "db_features": args.db_features})
+    STAGE["localize"].check_inputs(project)      # every bad query photo named at once
     out = localize.run(project, s, ablation=args.ablation, executor=executor_settings(args), force=args.force)
     print(f"poses: {out / 'poses.txt'}  status: {out / 'status.json'}")

@@ -74,7 +74,7 @@ def _print_reference(r: dict) -> None:
 def run(args):
     from ..project import Project
     from ..sfm.blocks import run_queries, run_reference
-    from ..stages import settings_for
+    from ..stages import STAGE, settings_for
     from .render_db import executor_settings
 
     project = Project.load(args.project)
@@ -85,6 +85,7 @@ def run(args):
         "georegister.checkpoints": args.checkpoints.split(",") if args.checkpoints else None,
         "georegister.use": args.georegister_with, "mapper": args.mapper})
     ex = executor_settings(args)
+    STAGE[f"sfm_{args.block}"].check_inputs(project)      # every bad photo named at once
     if args.block == "reference":
         _print_reference(run_reference(project, s, force=args.force, executor=ex))
     else:

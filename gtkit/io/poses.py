@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..errors import GtkitError
+from ..errors import GtkitError, Problems
 from ..pose import Pose
 from .atomic import write_text
 
@@ -73,15 +73,38 @@ def write_covariances(path: str | Path, cov: dict[str, np.ndarray]) -> Path:
 
 
 def read_intrinsics(path: str | Path) -> dict[str, Camera]:
+    """Every bad line is named in one error (:class:`gtkit.errors.Problems`)."""
     cams: dict[str, Camera] = {}
+    problems = Problems(path)
     for n, f in _lines(Path(path)):
         if len(f) < 5:
-            raise GtkitError(f"line {n}: expected 'name MODEL W H params...'", path)
+            problems.add(f"line {n}", f"expected 'name MODEL W H params...', got {len(f)} field{'s' if len(f) != 1 else ''}")
+            continue
         try:
-            cams[f[0]] = Camera(f[1], int(f[2]), int(f[3]), tuple(float(v) for v in f[4:]))
-        except (ValueError, GtkitError) as e:
-            raise GtkitError(f"line {n} ({f[0]}): {e}", path) from None
+            w, h = int(f[2]), int(f[3])
+        except ValueError:
+            problems.add(f"line {n} ({f[0]})", f"width and height must be whole numbers, got {f[2]!r} {f[3]!r}")
+            continue
+        try:
+            params = tuple(float(v) for v in f[4:])
+        except ValueError:
+            bad = next(v for v in f[4:] if not _is_number(v))
+            problems.add(f"line {n} ({f[0]})", f"parameter {bad!r} is not a number")
+            continue
+        try:
+            cams[f[0]] = Camera(f[1], w, h, params)
+        except GtkitError as e:
+            problems.add(f"line {n} ({f[0]})", e)
+    problems.raise_if_any()
     return cams
+
+
+def _is_number(v: str) -> bool:
+    try:
+        float(v)
+    except ValueError:
+        return False
+    return True
 
 
 def write_intrinsics(path: str | Path, cams: dict[str, Camera]) -> Path:
