@@ -1,10 +1,16 @@
 """The ``gtkit`` command. Subcommands live in :mod:`gtkit.commands`, one module each, found
 automatically; every module defines ``register(subparsers)`` and sets ``func`` on its parser.
 A subcommand only parses arguments and calls one stage or pipeline function.
+
+Every command that names a project folder writes it, and holds the project's lock while it runs
+(:mod:`gtkit.project_lock`: a second writer is refused in one line, exit 2), except those that set
+``writes=False`` on their parser (``info``, ``view``, ``gcp status``, ``meta``; ``annotate`` takes
+the lock for each save itself).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import os
@@ -40,6 +46,15 @@ def _error_file(args) -> Path:
     return Path(tempfile.gettempdir()) / f"gtkit-error-{os.getpid()}.txt"
 
 
+def project_written(args) -> Path | None:
+    """The project folder this command writes (its lock is held while it runs), or None: a
+    read-only command (``writes=False``), or no project folder named (``init``, ``sample create``)."""
+    if not getattr(args, "writes", True):
+        return None
+    root = getattr(args, "project", None) or getattr(args, "dir", None)
+    return Path(root) if root and (Path(root) / "project.toml").is_file() else None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -48,13 +63,20 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from .project_lock import ProjectLocked, project_lock
+
+    root = project_written(args)
     quiet = quiet_terminal(args.verbose)  # COLMAP, Open3D, Qt output -> work/<stage>/log.txt unless -v
+    log = None   # bound once the terminal is quiet (a lock refused before it is not)
     try:
-        with quiet as log:
+        with project_lock(root) if root else contextlib.nullcontext(), quiet as log:
             rv = args.func(args)
+    except ProjectLocked as e:   # a second writer: one line naming the holder, nothing else
+        print(f"gtkit: error: {e}", file=sys.stderr)
+        return 2
     except GtkitError as e:
         told = getattr(e, "traceback_file", None) is not None  # the message names its own file
-        print(f"gtkit: error: {e}" + (f" (full log: {log.log_path})" if log.log_path and not told else ""),
+        print(f"gtkit: error: {e}" + (f" (full log: {log.log_path})" if getattr(log, "log_path", None) and not told else ""),
               file=sys.stderr)
         return 2
     except KeyboardInterrupt:

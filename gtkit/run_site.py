@@ -28,6 +28,7 @@ from .errors import GtkitError
 from .io.atomic import write_json
 from .logs import write_traceback
 from .project import Project
+from .project_lock import project_lock
 from .sfm import registration_record as record
 from .stages import NAMES as STAGES
 from .stages import STAGE, Context, Skip, model_state, record_time, rel, settings_for
@@ -73,7 +74,13 @@ def run(root: str | Path, opts: RunOptions | None = None, progress: Callable[[St
     """Run the stages (see the module doc); returns the summary, also written to ``reports/run.json``.
     ``starting(name)`` is called before a stage runs, ``progress(result)`` after each stage.
     A stage's :class:`GtkitError` is raised again with the stage named; the summary of the stages
-    before it is written first."""
+    before it is written first. Holds the project's lock throughout (:mod:`gtkit.project_lock`;
+    re-entrant: ``gtkit run`` and the main job hold it already): another writer is refused."""
+    with project_lock(root):
+        return _run(root, opts, progress, starting)
+
+
+def _run(root, opts, progress, starting) -> dict:
     opts = opts or RunOptions()
     project = Project.load(root)
     todo = selected(opts)

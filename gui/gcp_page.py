@@ -31,6 +31,7 @@ from gtkit.errors import GtkitError
 from .gcp_store import GcpStore
 from .image_view import ImageView
 from .page_layout import side_and_photo
+from .write_guard import WriteGuard
 
 log = logging.getLogger(__name__)
 ROLE = Qt.ItemDataRole.UserRole
@@ -92,11 +93,12 @@ class GcpPage(QWidget):
     session_changed = Signal()
     photo_shown = Signal(str, str)      # gcp, photo: a photo opened for a GCP (drivers wait on it)
 
-    def __init__(self, project, cache, undo_stack: QUndoStack | None = None, parent=None):
+    def __init__(self, project, cache, undo_stack: QUndoStack | None = None, parent=None, guard=None):
         super().__init__(parent)
         self.project, self.paths = project, project.paths
         self.undo = undo_stack or QUndoStack(self)
-        self.store = GcpStore(project)
+        self.guard = guard or WriteGuard(project.paths.root)
+        self.store = GcpStore(project, guard=self.guard)
         self.gcp: str | None = None
         self.photo: str | None = None
         self.snap: tuple[float, float] | None = None   # the target's centre found near the prediction
@@ -267,6 +269,9 @@ class GcpPage(QWidget):
 
     # --- edits ------------------------------------------------------------------------------------
     def _refuse(self) -> bool:
+        if self.guard.blocked():     # a gtkit run or stage writes the project: gcp_list.txt is its input
+            self.status.emit(self.guard.blocked())
+            return True
         if self.store.changed_on_disk():
             self.status.emit(f"{self.store.path}: changed on disk since the annotator read it -- not overwriting it; "
                              "reopen the annotator to load it")

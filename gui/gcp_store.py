@@ -15,10 +15,13 @@ from gtkit.errors import GtkitError
 from gtkit.gcp.marking import Block, Solution, load_block, solve
 from gtkit.gcp.site import import_points, load_marking, save_clicks, settings_for
 
+from .write_guard import saving
+
 
 class GcpStore:
-    def __init__(self, project, on_saved=None):
+    def __init__(self, project, on_saved=None, guard=None):
         self.project = project
+        self.guard = guard  # gui.write_guard.WriteGuard: each save holds the project's lock (None: not held)
         self.path: Path = project.paths.gcp_list
         self.settings = settings_for(project)
         self.on_saved = on_saved
@@ -60,7 +63,8 @@ class GcpStore:
 
     # --- edits (each one saved before returning) ---------------------------------------------
     def save(self):
-        save_clicks(self.project, self.points, self.clicks)
+        with saving(self.guard):
+            save_clicks(self.project, self.points, self.clicks)
         self._mtime = self._stat()
         self._solution = None
         self.n_writes += 1

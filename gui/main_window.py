@@ -7,7 +7,7 @@ import logging
 
 from PySide6.QtCore import QTimer
 from PySide6.QtGui import QAction, QKeySequence, QUndoStack
-from PySide6.QtWidgets import QMainWindow, QTabWidget
+from PySide6.QtWidgets import QLabel, QMainWindow, QTabWidget
 
 from gtkit.io.poses import read_poses
 from gtkit.project import Project, resolve_path
@@ -22,6 +22,7 @@ from .session import load_session, save_session
 from .store import TiePointStore
 from .target_page import TargetPage
 from .tiepoint_page import TiePointPage
+from .write_guard import WriteGuard
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,8 @@ class MainWindow(QMainWindow):
         self.project = Project.load(project_dir)
         P = self.paths = self.project.paths
         self.session = load_session(P)
-        self.store = TiePointStore(P.tiepoints, on_saved=on_saved)
+        self.guard = WriteGuard(P.root)   # no saves while a gtkit run or stage writes the project
+        self.store = TiePointStore(P.tiepoints, on_saved=on_saved, guard=self.guard)
         self.undo_stack = QUndoStack(self)
         self.cache = ImageCache()
         stored = self.session.get("review", {}).get("pose_file")  # relative to the project (older: absolute)
@@ -64,9 +66,9 @@ class MainWindow(QMainWindow):
         self.ranker = OverlapRanker(P, self.project.frame, rank_poses,
                                     cache_file=P.stage("annotate") / "prior_ground_points.json")
         self.tiepoints = TiePointPage(P, self.store, self.cache, self.ranker, self.undo_stack)
-        self.review = ReviewPage(self.project, pose_file)
+        self.review = ReviewPage(self.project, pose_file, guard=self.guard)
         self.target_undo = QUndoStack(self)  # the Targets page's own undo history
-        self.targets = TargetPage(self.project, self.cache, self.target_undo)
+        self.targets = TargetPage(self.project, self.cache, self.target_undo, guard=self.guard)
         self.tabs = QTabWidget()
         self.tabs.addTab(self.tiepoints, "Tie points")
         self.tabs.addTab(self.review, "Alignment review")
@@ -74,7 +76,7 @@ class MainWindow(QMainWindow):
         self.scene3d = ScenePage(self.project)  # built when first shown (gtkit.view.scene, VTK offscreen)
         self.tabs.addTab(self.scene3d, "3D scene")
         self.gcp_undo = QUndoStack(self)  # the GCP page's own undo history
-        self.gcps = GcpPage(self.project, self.cache, self.gcp_undo)
+        self.gcps = GcpPage(self.project, self.cache, self.gcp_undo, guard=self.guard)
         self.tabs.addTab(self.gcps, "GCPs")
         self._prev_tab = 0
         self.setCentralWidget(self.tabs)
@@ -101,6 +103,24 @@ class MainWindow(QMainWindow):
             self.tabs.setCurrentIndex(TABS.index(self.session["tab"]))
         self._restoring = False
         self.statusBar().showMessage(f"{len(self.store)} tie points in {P.tiepoints.name}; every edit is saved at once")
+        self.banner = QLabel()          # says so while another gtkit process writes the project
+        self.banner.setStyleSheet("QLabel { background: #ffd54f; color: black; padding: 2px 6px; }")
+        self.banner.setWordWrap(True)
+        self.statusBar().addPermanentWidget(self.banner, 1)
+        self._writer_timer = QTimer(self)
+        self._writer_timer.setInterval(1000)
+        self._writer_timer.timeout.connect(self.check_writer)
+        self._writer_timer.start()
+        self.check_writer()
+
+    def check_writer(self) -> str | None:
+        """Show (or clear) the read-only banner: another gtkit process writing the project."""
+        why = self.guard.blocked()
+        self.banner.setText(why or "")
+        self.banner.setVisible(why is not None)
+        title = f"gtkit annotate: {self.project.name} ({self.paths.root})"
+        self.setWindowTitle(title + (" [read-only: another gtkit process writes it]" if why else ""))
+        return why
 
     def restore_views(self):
         """Re-apply the saved zoom/centre once the window has its real size."""
@@ -142,7 +162,7 @@ class MainWindow(QMainWindow):
             self.gcps.undo_()
         elif self._on_targets():
             self.targets.undo_()
-        else:
+        elif not self.tiepoints.refuse():
             self.undo_stack.undo()
 
     def redo_(self):
@@ -150,7 +170,7 @@ class MainWindow(QMainWindow):
             self.gcps.redo_()
         elif self._on_targets():
             self.targets.redo_()
-        else:
+        elif not self.tiepoints.refuse():
             self.undo_stack.redo()
 
     def delete_(self):

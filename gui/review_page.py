@@ -18,6 +18,7 @@ from gtkit.render.overlay import MODES, OverlayScene, alignment, compose, defaul
 from gtkit.review import STATUSES, read_review, set_status
 
 from .image_view import ImageView
+from .write_guard import WriteGuard
 
 log = logging.getLogger(__name__)
 ROLE = Qt.ItemDataRole.UserRole
@@ -51,9 +52,10 @@ class ReviewPage(QWidget):
     status = Signal(str)
     session_changed = Signal()
 
-    def __init__(self, project, pose_file=None, max_side: int = 1600, parent=None):
+    def __init__(self, project, pose_file=None, max_side: int = 1600, parent=None, guard=None):
         super().__init__(parent)
         self.project, self.paths = project, project.paths
+        self.guard = guard or WriteGuard(project.paths.root)
         self.pose_file = pose_file or default_pose_file(self.paths)
         self.max_side = max_side
         self.scene: OverlayScene | None = None
@@ -226,11 +228,15 @@ class ReviewPage(QWidget):
     def set_verdict(self, status: str):
         if not self.image:
             return
+        if self.guard.blocked():      # review.json is the report stage's input
+            self.status.emit(self.guard.blocked())
+            return
         a = self._cache[5] if self._cache else None
         info = {"pose_file": self.stored_pose_file()}
         if a is not None and np.isfinite(a.misalignment_px):
             info["misalignment_px"] = round(a.misalignment_px, 3)
-        verdicts = set_status(self.paths.review, self.image, status, self.note.currentText(), **info)
+        with self.guard.saving():
+            verdicts = set_status(self.paths.review, self.image, status, self.note.currentText(), **info)
         it = self.list.currentItem()
         if it is not None:
             it.setText(f"{MARK[status]} {self.image}")

@@ -14,6 +14,8 @@ from pathlib import Path
 from gtkit.io.atomic import write_text
 from gtkit.io.tiepoints import FORMAT, VERSION, Observation, TiePoint, read_tiepoints
 
+from .write_guard import saving
+
 
 def tiepoints_json(tiepoints: list[TiePoint]) -> str:
     """The tie-point file's text (the format of :mod:`gtkit.io.tiepoints`), one tie point a line.
@@ -30,8 +32,9 @@ def tiepoints_json(tiepoints: list[TiePoint]) -> str:
 
 
 class TiePointStore:
-    def __init__(self, path: str | Path, on_saved=None):
+    def __init__(self, path: str | Path, on_saved=None, guard=None):
         self.path = Path(path)
+        self.guard = guard  # gui.write_guard.WriteGuard: each save holds the project's lock (None: no project)
         self.tiepoints: list[TiePoint] = read_tiepoints(self.path) if self.path.is_file() else []
         self._index = {t.id: t for t in self.tiepoints}
         self.on_saved = on_saved  # callback(store) after every write
@@ -72,7 +75,8 @@ class TiePointStore:
 
     # --- edits (each one saved before returning) ------------------------------------------
     def save(self) -> None:
-        write_text(self.path, tiepoints_json(self.tiepoints))  # atomic: temp file, fsync, rename
+        with saving(self.guard):
+            write_text(self.path, tiepoints_json(self.tiepoints))  # atomic: temp file, fsync, rename
         self.n_writes += 1
         if self.on_saved:
             self.on_saved(self)

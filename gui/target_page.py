@@ -29,6 +29,7 @@ from .image_view import ImageView, Marker
 from .page_layout import side_and_photo
 from .target_store import PLURAL, Target, TargetStore, box_target, match_result, tracked_results
 from .target_undo import AddTarget, ChangeTarget, DeleteTarget
+from .write_guard import WriteGuard
 
 log = logging.getLogger(__name__)
 
@@ -131,9 +132,10 @@ class TargetPage(QWidget):
     status = Signal(str)
     session_changed = Signal()
 
-    def __init__(self, project, cache, undo_stack: QUndoStack | None = None, parent=None):
+    def __init__(self, project, cache, undo_stack: QUndoStack | None = None, parent=None, guard=None):
         super().__init__(parent)
         self.project, self.paths = project, project.paths
+        self.guard = guard or WriteGuard(project.paths.root)
         self.undo = undo_stack or QUndoStack(self)
         self.all_queries = query_photos(project)
         self.photos = zoom_photos(self.all_queries)
@@ -142,7 +144,7 @@ class TargetPage(QWidget):
         self.error: str | None = None
         self.store: TargetStore | None = None
         try:
-            self.store = TargetStore(self.paths.detections, self.all_queries)
+            self.store = TargetStore(self.paths.detections, self.all_queries, guard=self.guard)
         except GtkitError as e:   # never overwrite a file we cannot read: the page stays read-only
             self.error = str(e)
             log.error("%s", e)
@@ -259,7 +261,11 @@ class TargetPage(QWidget):
 
     def _refuse(self, t: Target | None = None) -> bool:
         """Whether an edit must not happen (said in the status bar): the file could not be read,
-        another program changed it since, or ``t`` is of the other kind than the file's."""
+        another program changed it since, another gtkit process writes the project now, or ``t`` is of
+        the other kind than the file's."""
+        if self.guard.blocked():
+            self.status.emit(self.guard.blocked())
+            return True
         if self.store is None:
             self.status.emit(f"{self.error} -- not editing it (fix or move the file, then reopen)")
             return True

@@ -25,6 +25,8 @@ from pathlib import Path
 from gtkit.errors import GtkitError
 from gtkit.track.targets import Detection, read_csv, resolve_images, write_csv
 
+from .write_guard import saving
+
 COMMENT = ("gtkit annotate: target clicks (x,y = foot point) or boxes in zoom photos, pixels in the COLMAP "
            "convention (the photo spans [0,W]x[0,H]); read by `gtkit track`")
 PLURAL = {"pixel": "pixels", "box": "boxes"}
@@ -55,8 +57,9 @@ def box_target(tid: str, image: str, x0: float, y0: float, x1: float, y1: float,
 
 
 class TargetStore:
-    def __init__(self, path: str | Path, query_names: list[str], on_saved=None):
+    def __init__(self, path: str | Path, query_names: list[str], on_saved=None, guard=None):
         self.path = Path(path)
+        self.guard = guard  # gui.write_guard.WriteGuard: each save holds the project's lock (None: no project)
         self.targets: list[Target] = []
         self._n = 0
         if self.path.is_file() and self.path.read_text(encoding="utf-8-sig").strip():
@@ -111,7 +114,8 @@ class TargetStore:
     # --- edits (each one saved before returning) ---------------------------------------------
     def save(self) -> None:
         dets = [Detection(t.image, t.x, t.y, t.label, t.time, t.box) for t in self.targets]
-        write_csv(self.path, dets, COMMENT)  # atomic: temp file, fsync, rename
+        with saving(self.guard):
+            write_csv(self.path, dets, COMMENT)  # atomic: temp file, fsync, rename
         self._stamp = self._disk_stamp()
         self.n_writes += 1
         if self.on_saved:

@@ -29,6 +29,7 @@ from .image_view import ImageView
 from .residuals import PosedResiduals, read_residuals, residual_file
 from .suggest import suggest
 from .undo import AddTiePoint, DeleteTiePoint, MoveObservation, PlaceObservation
+from .write_guard import WriteGuard
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +60,7 @@ class TiePointPage(QWidget):
     def __init__(self, paths, store, cache, ranker, undo_stack: QUndoStack, parent=None):
         super().__init__(parent)
         self.paths, self.store, self.cache, self.ranker = paths, store, cache, ranker
+        self.guard = getattr(store, "guard", None) or WriteGuard(paths.root)
         self.undo = undo_stack
         self.query: str | None = None
         self.reference: str | None = None
@@ -223,9 +225,17 @@ class TiePointPage(QWidget):
             self.ref_list.setCurrentRow((self.ref_list.currentRow() + d) % n)
 
     # --- edits -------------------------------------------------------------------------------
+    def refuse(self) -> bool:
+        """Whether an edit must not happen now (said in the status bar): another gtkit process
+        writes the project (tiepoints.json is the registration's input)."""
+        why = self.guard.blocked()
+        if why:
+            self.status.emit(why)
+        return why is not None
+
     def place(self, image: str | None, x: float, y: float) -> str | None:
         """A click: the active tie point's observation in ``image``, or a new tie point."""
-        if image is None:
+        if image is None or self.refuse():
             return None
         tp = self.store.get(self.active) if self.active else None
         if tp is None or any(o.image == image for o in tp.observations):
@@ -239,7 +249,7 @@ class TiePointPage(QWidget):
         return tp_id
 
     def delete_active(self):
-        if self.active and self.store.get(self.active):
+        if self.active and self.store.get(self.active) and not self.refuse():
             self.undo.push(DeleteTiePoint(self.store, self.active))
             self.status.emit(f"{self.active} deleted; saved")
             self.active = None
@@ -264,6 +274,9 @@ class TiePointPage(QWidget):
                 s.xq, s.yq = nx, ny
             else:
                 s.xr, s.yr = nx, ny
+            return
+        if self.refuse():
+            self.refresh()          # the marker back where the file has it
             return
         self.undo.push(MoveObservation(self.store, key, image, (ox, oy), (nx, ny)))
         self.status.emit(f"{key}: moved in {image}; saved")
@@ -299,7 +312,7 @@ class TiePointPage(QWidget):
             self.rview.centerOn(s.xr, s.yr)
 
     def accept_suggestion(self) -> str | None:
-        if not self.suggestions or self.suggestion_index >= len(self.suggestions):
+        if not self.suggestions or self.suggestion_index >= len(self.suggestions) or self.refuse():
             return None
         s = self.suggestions.pop(self.suggestion_index)
         tp = TiePoint(self.store.new_id(), [Observation(self.query, s.xq, s.yq), Observation(self.reference, s.xr, s.yr)],

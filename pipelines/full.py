@@ -25,6 +25,7 @@ from pathlib import Path
 from gtkit.errors import GtkitError
 from gtkit.io.atomic import write_json
 from gtkit.project import PROJECT_FILE, Paths, relative_paths
+from gtkit.project_lock import project_lock
 
 log = logging.getLogger("full")
 
@@ -37,9 +38,8 @@ def _load(path: Path) -> dict:
 
 
 def main(root: str | Path, preset: str = "small", seed: int = 0, progress=None, starting=None) -> dict:
-    """The main job (see the module doc); returns the summary (also ``reports/summary.json``)."""
-    from gtkit import run_site
-
+    """The main job (see the module doc); returns the summary (also ``reports/summary.json``).
+    Holds the project's lock (:mod:`gtkit.project_lock`) once the project exists."""
     root = Path(root)
     paths = Paths(root)
     times: dict[str, float] = {}
@@ -50,6 +50,13 @@ def main(root: str | Path, preset: str = "small", seed: int = 0, progress=None, 
         t = time.time()
         create_sample(root, load_preset(preset, seed=seed))
         times["sample"] = round(time.time() - t, 1)
+    with project_lock(root):    # one writer per project: a second main job or gtkit run is refused
+        return _job(root, paths, times, progress, starting)
+
+
+def _job(root: Path, paths: Paths, times: dict, progress, starting) -> dict:
+    from gtkit import run_site
+
     if paths.truth.is_dir() and not paths.detections.is_file():
         # sample sites only: a simulated detector marks the targets in the zoom photos
         from gtkit.evaluate.tracking import simulate_detections

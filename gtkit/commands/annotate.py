@@ -7,7 +7,7 @@ def register(sub):
     p.add_argument("project")
     p.add_argument("--poses", help="pose file for the alignment review (default: the register stage's poses)")
     p.add_argument("--query", help="start on this query image (name relative to images/)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, writes=False)   # no lock for the session: each save of the annotator takes it (gui/write_guard.py)
 
 
 def run(args):

@@ -26,7 +26,7 @@ def register(sub):
                         ("status", run_status, "each GCP's clicks, residuals and errors")):
         q = s.add_parser(name, help=h)
         q.add_argument("project")
-        q.set_defaults(func=fn)
+        q.set_defaults(func=fn, writes=name != "status")   # status only reads: no project lock
 
 
 def run_import(args):

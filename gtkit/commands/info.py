@@ -5,7 +5,7 @@ from __future__ import annotations
 def register(sub):
     p = sub.add_parser("info", help="summarise a project folder")
     p.add_argument("project")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, writes=False)
 
 
 def run(args):

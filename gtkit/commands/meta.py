@@ -8,7 +8,7 @@ def register(sub):
     p = sub.add_parser("meta", help="print EXIF GPS and DJI XMP attitude of photos")
     p.add_argument("photos", nargs="+")
     p.add_argument("--require", choices=["gps", "gimbal"], action="append", default=[])
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, writes=False)
 
 
 def run(args):

@@ -10,7 +10,7 @@ def register(sub):
     p.add_argument("--max-triangles", type=int, default=None,
                    help="decimate the model to at most this many triangles (default 60,000; cached in work/view/)")
     p.add_argument("--out", default=None, help="folder for the PNGs (default DIR/reports)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, writes=False)
 
 
 def run(args):
