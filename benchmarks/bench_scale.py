@@ -124,7 +124,7 @@ def run_measured(cmd: list[str], log_path: Path, env: dict | None = None, cwd: P
 
 
 def create_and_run(preset: str, seed: int, work: Path, code: Path, stop_after: str | None,
-                   max_rss_gb: float) -> Path:
+                   max_rss_gb: float, nice: int = 10) -> Path:
     proj = work / f"{preset}_{seed}"
     work.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONPATH=str(code), GTKIT_PROGRESS="0")
@@ -134,7 +134,7 @@ def create_and_run(preset: str, seed: int, work: Path, code: Path, stop_after: s
         runs = json.loads(rec.read_text())
     if not (proj / "project.toml").is_file():
         r = run_measured([sys.executable, "-m", "gtkit.cli", "sample", "create", str(proj), "--preset", preset,
-                          "--seed", str(seed), "-q"], work / f"{preset}_{seed}.sample.log", env, code, max_rss_gb)
+                          "--seed", str(seed), "-q"], work / f"{preset}_{seed}.sample.log", env, code, max_rss_gb, nice)
         r["disk_mb"] = round(disk_bytes(proj) / 2**20, 1)
         runs["sample"] = r
         print(f"sample {preset} seed {seed}: {r}", flush=True)
@@ -145,7 +145,7 @@ def create_and_run(preset: str, seed: int, work: Path, code: Path, stop_after: s
             raise SystemExit(f"sample creation failed (rc {r['rc']}), see {work / f'{preset}_{seed}.sample.log'}")
     if stop_after != "sample":
         r = run_measured([sys.executable, "-m", "pipelines.full", str(proj)], work / f"{preset}_{seed}.full.log",
-                         env, code, max_rss_gb)
+                         env, code, max_rss_gb, nice)
         runs["full"] = r
         print(f"main job {preset} seed {seed}: {r}", flush=True)
         rec.parent.mkdir(parents=True, exist_ok=True)
@@ -407,6 +407,8 @@ def main(argv=None) -> None:
     ap.add_argument("--code", type=Path, default=ROOT, help="the gtkit checkout to run (default: this one)")
     ap.add_argument("--stop-after", choices=("sample",), help="only create the sample (measured)")
     ap.add_argument("--max-rss-gb", type=float, default=6.0, help="kill a measured run whose processes exceed this")
+    ap.add_argument("--nice", type=int, default=10, help="niceness of the measured runs (0: an equal share of a "
+                    "machine others use too)")
     ap.add_argument("--per-site", action="store_true", help="one column a site instead of the median per preset")
     ap.add_argument("--json", type=Path, help="also write the rows and fits here")
     a = ap.parse_args(argv)
@@ -414,7 +416,8 @@ def main(argv=None) -> None:
     if a.preset:
         if not a.work:
             ap.error("--preset needs --work")
-        projects.append(create_and_run(a.preset, a.seed, a.work, a.code.resolve(), a.stop_after, a.max_rss_gb))
+        projects.append(create_and_run(a.preset, a.seed, a.work, a.code.resolve(), a.stop_after, a.max_rss_gb,
+                                        a.nice))
     for p in projects:
         if not (p / "project.toml").is_file():
             ap.error(f"not a gtkit project: {p}")

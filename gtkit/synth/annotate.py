@@ -73,54 +73,69 @@ def backproject(shot: Shot, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
 def tie_points(queries: list[tuple[Shot, np.ndarray, np.ndarray, np.ndarray]], ref_shots: list[Shot],
                ref_depths: dict[str, np.ndarray], settings, rng: np.random.Generator, exclude_water=None):
     """queries: (shot, clean gray uint8, depth, moving-target mask). Returns (tiepoints, truth list)."""
-    a = settings
     tps, truth = [], []
+    for query in queries:
+        query_tie_points(query, ref_shots, ref_depths, settings, rng, tps, truth, exclude_water)
+    add_gross_mistakes(tps, truth, ref_shots, settings, rng)
+    return tps, truth
+
+
+def query_tie_points(query: tuple[Shot, np.ndarray, np.ndarray, np.ndarray], ref_shots: list[Shot],
+                     ref_depths: dict[str, np.ndarray], settings, rng: np.random.Generator, tps: list,
+                     truth: list, exclude_water=None) -> None:
+    """Append one query photo's tie points to ``tps`` / ``truth`` (the generator calls it as each
+    photo is rendered, so no full-size photo is kept; the same draws as :func:`tie_points`)."""
+    a = settings
     ref_centres = np.array([r.pose.center for r in ref_shots])
-    for shot, gray, depth, tmask in queries:
-        lo, hi = a.tiepoints_zoom if shot.kind == "zoom" else a.tiepoints_wide
-        want = int(rng.integers(lo, hi + 1))
-        excl = tmask.copy()
-        if exclude_water is not None:
-            excl |= exclude_water(shot, depth)
-        uv = _candidates(gray, depth, excl, 300)
-        if not len(uv):
-            continue
-        X = backproject(shot, uv, depth)
-        # reference views that see each candidate
-        vis = np.zeros((len(X), len(ref_shots)), bool)
-        ref_uv = np.zeros((len(X), len(ref_shots), 2))
-        # only reference views near the clicked area can see it
-        reach = np.hypot(ref_centres[:, 0] - X[:, 0].mean(), ref_centres[:, 1] - X[:, 1].mean())
-        spread = np.hypot(*(X[:, :2].max(0) - X[:, :2].min(0)))
-        near = reach < spread + 3.0 * np.maximum(ref_centres[:, 2] - X[:, 2].min(), 1.0)
-        for k in np.flatnonzero(near):
-            r = ref_shots[k]
-            vis[:, k], ref_uv[:, k] = visible(r, ref_depths[r.name], X, margin=10)
-        nvis = vis.sum(1)
-        order = rng.permutation(len(X))
-        order = order[np.argsort(-np.minimum(nvis[order], 2), kind="stable")]
-        chosen = [i for i in order if nvis[i] >= 1][:want]
-        for i in sorted(chosen):
-            ks = np.flatnonzero(vis[i])
-            # the views a person would pick: cameras closest to the query's viewing direction
-            d_q = X[i] - shot.pose.center
-            d_r = X[i] - ref_centres[ks]
-            cosang = (d_r @ d_q) / (np.linalg.norm(d_r, axis=1) * np.linalg.norm(d_q))
-            ks = ks[np.argsort(-cosang, kind="stable")]
-            n_refs = int(rng.integers(a.refs_per_tiepoint[0], a.refs_per_tiepoint[1] + 1))
-            ks = ks[:max(1, n_refs)]
-            tid = f"tp{len(tps) + 1:04d}"
-            obs = [Observation(shot.name, *(uv[i] + rng.normal(0, a.tie_sigma_px, 2)))]
-            obs += [Observation(ref_shots[k].name, *(ref_uv[i, k] + rng.normal(0, a.tie_sigma_px, 2))) for k in ks]
-            for o in obs:
-                o.x, o.y = round(float(o.x), 3), round(float(o.y), 3)
-            tps.append(TiePoint(tid, obs, source="simulated"))
-            truth.append({"id": tid, "xyz": [round(float(v), 4) for v in X[i]], "gross_mistake": False,
-                          "wrong_image": None,
-                          "true_pixels": {shot.name: [round(float(v), 3) for v in uv[i]],
-                                          **{ref_shots[k].name: [round(float(v), 3) for v in ref_uv[i, k]]
-                                             for k in ks}}})
-    # gross mistakes: exactly round(share * n) tie points get one wrong reference click
+    shot, gray, depth, tmask = query
+    lo, hi = a.tiepoints_zoom if shot.kind == "zoom" else a.tiepoints_wide
+    want = int(rng.integers(lo, hi + 1))
+    excl = tmask.copy()
+    if exclude_water is not None:
+        excl |= exclude_water(shot, depth)
+    uv = _candidates(gray, depth, excl, 300)
+    if not len(uv):
+        return
+    X = backproject(shot, uv, depth)
+    # reference views that see each candidate
+    vis = np.zeros((len(X), len(ref_shots)), bool)
+    ref_uv = np.zeros((len(X), len(ref_shots), 2))
+    # only reference views near the clicked area can see it
+    reach = np.hypot(ref_centres[:, 0] - X[:, 0].mean(), ref_centres[:, 1] - X[:, 1].mean())
+    spread = np.hypot(*(X[:, :2].max(0) - X[:, :2].min(0)))
+    near = reach < spread + 3.0 * np.maximum(ref_centres[:, 2] - X[:, 2].min(), 1.0)
+    for k in np.flatnonzero(near):
+        r = ref_shots[k]
+        vis[:, k], ref_uv[:, k] = visible(r, ref_depths[r.name], X, margin=10)
+    nvis = vis.sum(1)
+    order = rng.permutation(len(X))
+    order = order[np.argsort(-np.minimum(nvis[order], 2), kind="stable")]
+    chosen = [i for i in order if nvis[i] >= 1][:want]
+    for i in sorted(chosen):
+        ks = np.flatnonzero(vis[i])
+        # the views a person would pick: cameras closest to the query's viewing direction
+        d_q = X[i] - shot.pose.center
+        d_r = X[i] - ref_centres[ks]
+        cosang = (d_r @ d_q) / (np.linalg.norm(d_r, axis=1) * np.linalg.norm(d_q))
+        ks = ks[np.argsort(-cosang, kind="stable")]
+        n_refs = int(rng.integers(a.refs_per_tiepoint[0], a.refs_per_tiepoint[1] + 1))
+        ks = ks[:max(1, n_refs)]
+        tid = f"tp{len(tps) + 1:04d}"
+        obs = [Observation(shot.name, *(uv[i] + rng.normal(0, a.tie_sigma_px, 2)))]
+        obs += [Observation(ref_shots[k].name, *(ref_uv[i, k] + rng.normal(0, a.tie_sigma_px, 2))) for k in ks]
+        for o in obs:
+            o.x, o.y = round(float(o.x), 3), round(float(o.y), 3)
+        tps.append(TiePoint(tid, obs, source="simulated"))
+        truth.append({"id": tid, "xyz": [round(float(v), 4) for v in X[i]], "gross_mistake": False,
+                      "wrong_image": None,
+                      "true_pixels": {shot.name: [round(float(v), 3) for v in uv[i]],
+                                      **{ref_shots[k].name: [round(float(v), 3) for v in ref_uv[i, k]]
+                                         for k in ks}}})
+
+
+def add_gross_mistakes(tps: list, truth: list, ref_shots: list[Shot], settings, rng: np.random.Generator) -> None:
+    """Exactly round(share * n) tie points get one wrong reference click (after every photo's ties)."""
+    a = settings
     cams = {r.name: r.camera for r in ref_shots}
     n_bad = int(round(a.gross_share * len(tps)))
     for t in sorted(rng.choice(len(tps), n_bad, replace=False).tolist()) if n_bad else []:
@@ -134,4 +149,3 @@ def tie_points(queries: list[tuple[Shot, np.ndarray, np.ndarray, np.ndarray]], r
                 break
         obs[j] = Observation(o.image, round(float(nx), 3), round(float(ny), 3))
         truth[t]["gross_mistake"], truth[t]["wrong_image"] = True, o.image
-    return tps, truth

@@ -23,7 +23,7 @@ from ..render.renderer import Renderer
 from . import annotate, flights, photos
 from .refmodel import reference_model
 from .settings import SynthSettings
-from .shading import world_glsl
+from .shading import MICRO_BELOW_M, finest_footprint_m, world_glsl
 from .targets import make_tracks
 from .world import build_world, true_mesh
 
@@ -54,7 +54,7 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
     t = time.perf_counter()
     world = build_world(s, _rng(s.seed, 1))
     mesh = true_mesh(world, s, _rng(s.seed, 11))
-    glsl = world_glsl(world)
+    glsl = world_glsl(world, micro=finest_footprint_m(s) < MICRO_BELOW_M)
     tracks = make_tracks(world, (s.targets.car_speed, s.targets.person_speed), _rng(s.seed, 12))
     world_r = Renderer(mesh, glsl)
     target_r = Renderer()
@@ -101,7 +101,8 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
     qs = s.queries
     qshots = flights.query_shots(world, tracks, s, _rng(s.seed, 2))
     light_q = photos.sun_lighting(qs.sun_azimuth_deg, qs.sun_elevation_deg, qs.ambient, qs.gain)
-    query_views = []
+    tps, tp_truth = [], []   # tie points of each photo as it is rendered (no photo is kept)
+    t_ties = 0.0
     meta_by_base: dict[str, dict] = {}
     with _bar("query photos", len(qshots), quiet) as bar:
         for sh in qshots:
@@ -120,17 +121,18 @@ def create_sample(root: str | Path, s: SynthSettings, *, quiet: bool = False) ->
                                timestamp=photos.exif_time(qs.date, sh.time_s), model=MODEL_NAMES[sh.kind],
                                camera=sh.camera, sensor_width_mm=photos.SENSOR_WIDTH_MM[sh.kind],
                                quality=qs.jpeg_quality)
+            t1 = time.perf_counter()
             gray = (rgb.astype(np.float32) @ [0.299, 0.587, 0.114]).astype(np.uint8)
-            query_views.append((sh, gray, depth, tmask))
+            annotate.query_tie_points((sh, gray, depth, tmask), ref, ref_depth, s.annotation, rng_ann, tps, tp_truth)
+            t_ties += time.perf_counter() - t1
             bar.update(1)
-    timings["query_photos"] = time.perf_counter() - t
+    timings["query_photos"] = time.perf_counter() - t - t_ties
 
-    # --- tie points ---------------------------------------------------------------------------
+    # --- tie points (each photo's above; the gross mistakes over all) -------------------------
     t = time.perf_counter()
-    tps, tp_truth = annotate.tie_points(query_views, ref, ref_depth, s.annotation, rng_ann)
+    annotate.add_gross_mistakes(tps, tp_truth, ref, s.annotation, rng_ann)
     write_tiepoints(paths.tiepoints, tps)
-    timings["tiepoints"] = time.perf_counter() - t
-    del query_views
+    timings["tiepoints"] = time.perf_counter() - t + t_ties
 
     # --- reference model ----------------------------------------------------------------------
     t = time.perf_counter()

@@ -3,7 +3,10 @@
 A photo = the true world rendered through the shot's true camera and pose (plus the moving
 targets at the shot's time, composited by depth), sky where nothing is seen, then the
 camera's degradations (exposure, tint, blur, sensor noise, JPEG). Distorted cameras are
-rendered as a larger pinhole image and resampled, so no border is lost.
+rendered as a larger pinhole image and resampled, so no border is lost. Photos larger than the
+renderer's framebuffer (``Renderer.MAX_FBO`` px a side: the full-size preset's 24 MP reference and
+20 MP zoom photos) are rendered in tiles, each a crop of the same pinhole camera drawn with the
+whole view's near / far planes, and pasted together.
 """
 from __future__ import annotations
 
@@ -17,7 +20,8 @@ from ..conventions import index_to_pixel, pixel_to_index, rotation_to_dji, wrap_
 from ..io.exif import write_jpeg_with_meta
 from ..io.mesh import Mesh
 from ..pose import Pose
-from ..render.renderer import Lighting, Renderer
+from ..render.frustum import near_far
+from ..render.renderer import Lighting, Renderer, union_box
 
 SENSOR_WIDTH_MM = {"reference": 13.2, "wide": 6.17, "zoom": 7.6}
 
@@ -44,14 +48,43 @@ def _distortion_maps(cam: Camera):
     return _MAPS[cam]
 
 
+def _tile_edges(n: int, side: int) -> list[int]:
+    """Edges of ceil(n / side) tiles of at most ``side`` px, inner edges on even pixels (so the
+    2 x 2 pixel quads the shader's derivatives come from are never split)."""
+    k = -(-n // side)
+    step = -(-n // k)
+    step += step % 2
+    return [min(i * step, n) for i in range(k)] + [n]
+
+
+def render_tiled(r: Renderer, cam: Camera, pose: Pose, lighting: Lighting, side: int | None = None):
+    """(rgb, depth) of a pinhole camera of any size: one render where it fits the renderer's
+    framebuffer, else tiles of at most ``side`` (default ``Renderer.MAX_FBO``) px a side."""
+    side = side or Renderer.MAX_FBO
+    if cam.width <= side and cam.height <= side:
+        res = r.render(cam, pose, lighting=lighting)
+        return res.rgb, res.depth
+    near, far = near_far(union_box(r.boxes()), pose) if len(r.boxes()) else (None, None)
+    rgb = np.zeros((cam.height, cam.width, 3), np.uint8)
+    depth = np.full((cam.height, cam.width), np.nan, np.float32)
+    xs, ys = _tile_edges(cam.width, side), _tile_edges(cam.height, side)
+    for y0, y1 in zip(ys[:-1], ys[1:]):
+        for x0, x1 in zip(xs[:-1], xs[1:]):
+            tile = Camera.pinhole(x1 - x0, y1 - y0, cam.fx, cam.fy, cam.cx - x0, cam.cy - y0)
+            res = r.render(tile, pose, lighting=lighting, near=near, far=far)
+            rgb[y0:y1, x0:x1] = res.rgb
+            depth[y0:y1, x0:x1] = res.depth
+    return rgb, depth
+
+
 def _render_pinhole_padded(r: Renderer, cam: Camera, pose: Pose, lighting: Lighting):
     """Render a distorted camera without losing the corners: a padded pinhole, then resample."""
     import cv2
 
     pin, src = _distortion_maps(cam)
-    res = r.render(pin, pose, lighting=lighting)
-    rgb = cv2.remap(res.rgb, src[..., 0], src[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    depth = cv2.remap(res.depth, src[..., 0], src[..., 1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+    res_rgb, res_depth = render_tiled(r, pin, pose, lighting)
+    rgb = cv2.remap(res_rgb, src[..., 0], src[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    depth = cv2.remap(res_depth, src[..., 0], src[..., 1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                       borderValue=np.nan)
     return rgb, depth
 
@@ -62,8 +95,7 @@ def render_view(world_r: Renderer, cam: Camera, pose: Pose, lighting: Lighting,
     def one(r):
         if cam.has_distortion:
             return _render_pinhole_padded(r, cam, pose, lighting)
-        res = r.render(cam, pose, lighting=lighting)
-        return res.rgb, res.depth
+        return render_tiled(r, cam, pose, lighting)
 
     rgb, depth = one(world_r)
     mask = np.zeros(depth.shape, bool)

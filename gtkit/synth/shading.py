@@ -4,6 +4,13 @@ Colour depends only on world position, normal, pattern uv, vertex colour and mat
 :mod:`gtkit.synth.world`), never on the camera, so the same spot looks the same in every photo
 (up to lighting) and in the baked reference texture. Noise octaves finer than twice the pixel
 footprint (``fwidth(p)``) fade to their mean, so renders are band-limited at any distance.
+
+The world's own octaves end at about 3 cm (the finest at full contrast ~12 cm), enough for every
+camera of the small to large presets (their sharpest pixel, the zoom's, covers >= 2 cm). A preset
+whose sharpest camera resolves finer (the full-size preset's 20 MP zoom: 4-8 mm a pixel) also gets
+``_MICRO``: four more octaves of grain, 6 cm down to 7.5 mm, multiplied onto every surface but the
+GCP targets, band-limited the same way (zero wherever a pixel covers 3 cm or more). Presets without
+it compile the very same shader source as before.
 """
 from __future__ import annotations
 
@@ -173,12 +180,51 @@ vec3 surface_color(vec3 p, vec3 n, vec2 uv, vec3 col, float mat) {
 """
 
 
+_MICRO = r"""
+// grain below the world's own octaves (6 cm .. 7.5 mm), zero where a pixel covers >= 3 cm
+float micro_grain(vec2 q, float fp) {
+    float s = 0.0, a = 1.0, wl = 0.06;
+    for (int i = 0; i < 4; i++) {
+        float fade = clamp((wl / max(fp, 1e-4) - 2.0) * 0.5, 0.0, 1.0);
+        s += a * fade * (vnoise(q / wl + vec2(3.1 * float(i), 7.7 * float(i))) - 0.5);
+        a *= 0.85; wl *= 0.5;
+    }
+    return s;
+}
+vec3 surface_color(vec3 p, vec3 n, vec2 uv, vec3 col, float mat) {
+    vec3 c = surface_color_base(p, n, uv, col, mat);
+    int m = int(mat + 0.5);
+    if (m > 4) return c;
+    float fp = max(length(fwidth(p)), 1e-4);
+    return c * (1.0 + MICRO_AMP * micro_grain(planar(p, n) + (m == 0 ? vec2(0.0) : vec2(0.0, p.z * 0.37)), fp));
+}
+"""
+MICRO_BELOW_M = 0.015   # a preset whose sharpest camera's pixel covers less than this gets _MICRO
+MICRO_AMP = 0.9         # the grain's contrast (its four octaves sum to about +-0.3 of the colour)
+
+
+def finest_footprint_m(s) -> float:
+    """Nominal ground footprint (m) of the sharpest pixel any camera of settings ``s`` takes: the
+    reference at its altitude, wide and zoom at the lowest sequence's height (ranges are longer)."""
+    import numpy as np
+
+    def fx(width, hfov):
+        return width / 2.0 / np.tan(np.radians(hfov) / 2.0)
+    r, q = s.reference, s.queries
+    out = r.altitude_agl / fx(r.width, r.hfov_deg)
+    if q.sequences:
+        h = min(seq.height_agl for seq in q.sequences)
+        out = min(out, h / fx(q.wide_width, q.wide_hfov_deg), h / fx(q.zoom_width, q.zoom_hfov_deg))
+    return float(out)
+
+
 def _f(v: float) -> str:
     return f"{float(v):.6f}"
 
 
-def world_glsl(world: World, field_m: float = 40.0) -> str:
-    """The GLSL source for a world (its roads, lake and town edge are compiled in)."""
+def world_glsl(world: World, field_m: float = 40.0, micro: bool = False) -> str:
+    """The GLSL source for a world (its roads, lake and town edge are compiled in); ``micro`` adds
+    the grain below 3 cm (:data:`_MICRO`; see the module doc)."""
     roads = world.roads
     lake = world.lake or (0.0, 0.0, 1.0, 1.0, 0.0)
     consts = [
@@ -193,4 +239,9 @@ def world_glsl(world: World, field_m: float = 40.0) -> str:
         f"const float HALF = {_f(world.size / 2)};",
         f"const float GCP_HALF = {_f(world.gcp_size / 2)};",
     ]
+    if micro:
+        consts.append(f"const float MICRO_AMP = {_f(MICRO_AMP)};")
+        main = _MAIN.replace("vec3 surface_color(vec3 p, vec3 n, vec2 uv, vec3 col, float mat) {",
+                             "vec3 surface_color_base(vec3 p, vec3 n, vec2 uv, vec3 col, float mat) {")
+        return _COMMON + "\n".join(consts) + "\n" + main + _MICRO
     return _COMMON + "\n".join(consts) + "\n" + _MAIN
