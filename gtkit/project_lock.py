@@ -17,7 +17,8 @@ has no flock, the record alone decides: a holder whose pid is no longer alive on
 
 Re-entrant within a process (a stage run inside ``gtkit run``, ``pipelines.full`` calling
 ``gtkit run``'s loop, the annotator's saves): a nested acquire of a lock this process holds counts
-up and returns at once. A forked child does not own its parent's lock (it never releases it).
+up and returns at once. A forked child (a worker process) does not own its parent's lock: it
+closes its inherited copy of the lock file at once and never releases the parent's.
 Read-only commands (``gtkit info``, ``gtkit view``, ``gtkit gcp status``) do not take it;
 :func:`holder` says, without taking it, whether another process writes the project (the annotator
 shows it and does not save while it does).
@@ -132,6 +133,21 @@ def _write_holder(root: Path, h: Holder) -> None:
 
 _HELD: dict[str, list] = {}       # resolved root -> [fd or None, depth, owner pid]
 _GUARD = threading.Lock()
+
+
+def _close_in_child() -> None:
+    """In a forked child (multiprocessing's workers, os.fork): close the inherited lock files, so a
+    worker that outlives the run's release does not keep the project locked (the parent's own
+    descriptor keeps the flock while it is open)."""
+    for e in _HELD.values():
+        if e[0] is not None:
+            with contextlib.suppress(OSError):
+                os.close(e[0])
+            e[0] = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_close_in_child)
 
 
 def _key(root: str | Path) -> str:

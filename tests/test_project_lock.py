@@ -114,16 +114,20 @@ def test_reentrant_in_one_process_and_released_after(site):
         assert s["stages"]["export_coords"]["status"] == "skipped"
         assert held_here(site) and read_holder(site).command == "outer"
     assert not held_here(site) and read_holder(site) is None
-    # a forked child does not own its parent's lock
+    # a forked child (a worker) does not own its parent's lock, and does not keep it after the parent's release
     assert acquire(site, "parent") is True
     pid = os.fork()
-    if pid == 0:   # the child: neither holds nor may release the parent's lock
-        os._exit(0 if (not held_here(site) and release(site) is None) else 1)
-    assert os.waitpid(pid, 0)[1] == 0 and held_here(site)
+    if pid == 0:   # the child: neither holds nor may release the parent's lock; it outlives the release
+        ok = not held_here(site) and release(site) is None
+        time.sleep(8)
+        os._exit(0 if ok else 1)
     r = _run(GTKIT + ["register", str(site)])
-    assert r.returncode == 2 and f"pid {os.getpid()}" in r.stderr
+    assert r.returncode == 2 and f"pid {os.getpid()}" in r.stderr     # the parent still holds it
     release(site)
     assert holder(site) is None
+    r = _run(GTKIT + ["run", str(site), "--from", "export_coords"])    # while the child still lives
+    assert r.returncode == 0 and "took over" not in r.stderr, r.stderr
+    assert os.waitpid(pid, 0)[1] == 0
 
 
 def test_library_run_refused_beside_a_writer(site):
@@ -191,11 +195,11 @@ def test_two_runs_started_together_one_completes_other_refuses(tiny_sample, tmp_
     side = _run(GTKIT + ["register", str(root)])
     _refused_one_line(side, winner_pid, f"gtkit run {root}")
     out = [(p, *p.communicate(timeout=900)) for p in runs]
-    refused = [(p, o, e) for p, o, e in out if p.returncode == 2]
-    done = [(p, o, e) for p, o, e in out if p.returncode != 2]
+    refused = [(p, o, e) for p, o, e in out if "another writer holds this project" in e]
+    done = [(p, o, e) for p, o, e in out if "another writer holds this project" not in e]
     assert len(refused) == 1 and len(done) == 1, [(p.returncode, e[-2000:]) for p, o, e in out]
     p, o, e = refused[0]
-    assert len(e.strip().splitlines()) == 1 and "Traceback" not in o + e and f"pid {winner_pid}" in e
+    assert p.returncode == 2 and len(e.strip().splitlines()) == 1 and "Traceback" not in o + e and f"pid {winner_pid}" in e
     p, o, e = done[0]
     assert p.returncode in (0, 1) and "Traceback" not in o + e, e[-3000:]   # the holder was its child (supervisor)
     s = json.loads((root / "reports" / "run.json").read_text())
