@@ -143,6 +143,23 @@ def test_the_main_job_and_gtkit_run_write_the_same_files(by_main_job, by_gtkit_r
     assert cams[0] == cams[1] and len(cams[0]) > 40
 
 
+RUN_OWN = ("reports/run.json", "work/errors/", "work/.lock")   # gtkit run's summary, tracebacks, the project lock
+
+
+def test_the_table_says_what_each_stage_writes(by_gtkit_run):
+    """Every file of a run lies under the `writes` of a stage that ran (or is the run's own), and
+    every path a stage that ran declares is there: the table is a true map of the project folder."""
+    rows = json.loads((by_gtkit_run / "reports/run.json").read_text())["stages"]
+    ran = [s for s in STAGES if rows[s.name]["status"] in ("ran", "up to date")]
+    declared = [w for s in ran for w in s.writes] + list(RUN_OWN)
+    stray = [f for f in _outputs(by_gtkit_run) if not any(f == w or (w.endswith("/") and f.startswith(w))
+                                                          for w in declared)]
+    assert not stray, f"files no stage of the table declares: {sorted(stray)[:10]}"
+    for s in ran:
+        missing = [w for w in s.writes if not (by_gtkit_run / w).exists()]
+        assert not missing, (s.name, missing)
+
+
 @pytest.fixture(scope="module")
 def site(by_gtkit_run, tmp_path_factory):
     """A finished project the settings tests change (a copy: the comparison above keeps its own)."""
