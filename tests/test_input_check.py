@@ -151,3 +151,23 @@ def test_stages_name_every_bad_photo_before_reading_any(photos, tmp_path):
     assert r.returncode == 2 and len(err.splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "3 bad photos" in err and "queries/seq1/0001_W.jpg: not an image: a text file" in err, err
     assert not (dst / "work" / "sfm_reference").exists()           # no stage started
+
+
+def test_many_bad_photos_counted_named_and_all_in_a_file(tmp_path):
+    from gtkit.input_check import SHOWN, BadInputs, require_good_photos
+    from gtkit.project import Project
+
+    proj = Project.create(tmp_path / "site", GeoFrame("EPSG:32650", (0.0, 0.0, 0.0)), "many")
+    ref = proj.paths.reference_images
+    ref.mkdir(parents=True)
+    _photo(ref / "good.jpg", 0)
+    for i in range(SHOWN + 5):
+        (ref / f"bad_{i:02d}.jpg").write_bytes(b"")
+    with pytest.raises(BadInputs) as e:
+        require_good_photos(proj, ("reference",))
+    report = proj.paths.work / "errors" / "bad_photos.txt"
+    msg = str(e.value)
+    assert f"{SHOWN + 5} bad photos (all {SHOWN + 5} in {report})" in msg and "... and 5 more" in msg, msg
+    assert len(e.value.problems) == SHOWN + 5 and "good.jpg" not in msg
+    lines = report.read_text().splitlines()
+    assert len(lines) == SHOWN + 5 and lines[0] == "reference/bad_00.jpg\tempty file (0 bytes)"
