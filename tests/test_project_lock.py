@@ -79,7 +79,7 @@ def test_second_writer_refused_in_one_line_naming_the_holder(site):
         _refused_one_line(_run([sys.executable, "-m", "gtkit.supervisor", "run", str(site)]), h.pid, cmd)
         # read-only commands still answer beside a writer
         r = _run(GTKIT + ["info", str(site)])
-        assert r.returncode == 0 and "lock-test" in r.stdout, r.stderr
+        assert r.returncode == 0 and "lock-test" in r.stdout and f"writer    `{cmd}` (pid {h.pid}" in r.stdout, r.stderr
         assert not (site / "reports" / "run.json").exists()     # the refused run wrote nothing
     finally:
         h.kill()
@@ -101,6 +101,7 @@ def test_lock_of_a_killed_process_is_taken_over_with_one_line(site):
     # and a clean release leaves nothing to take over
     r = _run(GTKIT + ["run", str(site), "--from", "export_coords"])
     assert r.returncode == 0 and "took over" not in r.stderr, r.stderr
+    assert "writer    none" in _run(GTKIT + ["info", str(site)]).stdout
 
 
 def test_reentrant_in_one_process_and_released_after(site):

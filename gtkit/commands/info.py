@@ -1,4 +1,5 @@
-"""``gtkit info DIR``: a project's CRS, origin, images and which stages are finished."""
+"""``gtkit info DIR``: a project's CRS, origin, images, which stages are finished and who writes it
+now (the project lock; info itself only reads, beside a run too)."""
 from __future__ import annotations
 
 
@@ -10,11 +11,14 @@ def register(sub):
 
 def run(args):
     from ..project import Project, read_stage_record
+    from ..project_lock import holder
 
     proj = Project.load(args.project)
     P = proj.paths
     print(f"project   {proj.name}  ({P.root})")
     print(f"crs       {proj.frame.crs_spec}  origin {list(proj.frame.origin)}")
+    h = holder(P.root)
+    print(f"writer    {h.describe() if h else 'none (no gtkit command writes it now)'}")
     n_ref = len(list(P.reference_images.glob("*.*"))) if P.reference_images.is_dir() else 0
     print(f"reference {n_ref} photos")
     for seq in P.query_sequences():
