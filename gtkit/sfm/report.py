@@ -168,7 +168,7 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
             L += ["", f"![{title}]({file})"]
         sv = [per[n].get("sigma_pos_m", np.nan) for n in names]
         if np.any(np.isfinite(sv)):
-            write_text(folder / "gt_sigma.svg", _svg_bars("position standard deviation per query photo (BA + systematic swing)", short,
+            write_text(folder / "gt_sigma.svg", _svg_bars("position standard deviation per query photo (BA, reference block, swing)", short,
                                                           [x if np.isfinite(x) else 0.0 for x in sv], "m"))
             L += ["", "![position sigma](gt_sigma.svg)"]
         cols = list(checks.get("columns", []))  # (key, header) added by evaluation

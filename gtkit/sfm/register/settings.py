@@ -10,6 +10,7 @@ from ..crossmatch import CrossMatchSettings
 from ..extend_reference import ExtendSettings
 from ..guided_clicks import GuidanceSettings
 from ..tie_surface import SmoothSurfaceSettings
+from .real_photo_terms import SigmaSettings
 
 STAGE = "register"
 
@@ -79,6 +80,9 @@ class RegisterSettings:
     # errors: small seeds 13-15, RMS error per camera axis 0.025 / 0.026 / 0.015 m against BA sigmas
     # of 0.023 / 0.025 / 0.013 m; the swing on top (0.03 m an axis at their 0.2 m a pixel) doubled it.
     systematic_swing_where: str = "biased"
+    # what else each photo's sigma holds (issue 48): the reference block's own uncertainty where the
+    # photo sees it, and the BA's covariance scaled by the measured residual field (real photos)
+    sigma: SigmaSettings = field(default_factory=SigmaSettings)
     # the next clicks suggested per sequence (work/register/guided_clicks.json, the GT report, the annotator)
     guidance: GuidanceSettings = field(default_factory=GuidanceSettings)
     # sequences without enough usable clicks: placed by automatic matches to the reference points

@@ -134,7 +134,8 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
                    else sorted(q for q, c in auto_choice.items() if c["smooth_only"]))
     t_ba = time.time()
     swung = set(blocks) if settings.systematic_swing_where == "all" else set(smooth_only)
-    poses, cams, covs, per_image, floors = query_poses(j, cov, settings.systematic_swing_px, swung, placed.resected)
+    poses, cams, covs, per_image, floors = query_poses(j, cov, settings.systematic_swing_px, swung, placed.resected,
+                                                       project.paths.stage(REFERENCE_STAGE) / "model", settings.sigma)
     tie_rows, bad = tie_table(j, clicks, placed.statuses, dropped, placed.report, prefixes)
     for seq in blocks:
         placed.report[seq]["n_tiepoints_final_ba"] = sum(1 for r in tie_rows.values()

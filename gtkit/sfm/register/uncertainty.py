@@ -1,5 +1,7 @@
-"""The uncertainty model: each query photo's pose covariance, the final joint BA's plus a systematic
-tilt about the ground it sees (``systematic_swing_px``) on the sequences it applies to."""
+"""The uncertainty model: each query photo's pose covariance, the final joint BA's (scaled by the
+sequence's measured residual field where it exceeds the BA's 1-px assumption) plus a systematic tilt
+about the ground it sees (``systematic_swing_px``) on the sequences it applies to, plus the reference
+block's own uncertainty where the photo sees it (:mod:`.real_photo_terms`, issue 48)."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,6 +10,7 @@ from ...camera import Camera
 from ...pose import Pose, skew
 from ..crossmatch import AUTO_PREFIX
 from .joint import Joint, _median_depth
+from .real_photo_terms import SigmaSettings, reference_shape, reference_term, residual_variance_factor
 
 
 def swing_covariance(t: np.ndarray, depth_m: float, focal_px: float, swing_px: float) -> np.ndarray:
@@ -39,11 +42,30 @@ def _ba_pose(rec, cov, iid: int) -> Pose:
     return Pose.from_pycolmap(rec.images[iid].cam_from_world(), c if ok else None)
 
 
-def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict):
-    """Each registered query photo's pose (with its covariance: the BA's, plus the systematic swing on
-    the sequences in ``swung``), camera and record (``resected``: the photos left out by their
-    sequence's SfM). Returns (poses, cameras, covariances, records, floors: photo -> the systematic
-    part's centre variance, which clicks do not lower)."""
+def _sequence_factors(j: Joint, qids: list[int], sigma: SigmaSettings) -> dict[str, float | None]:
+    """Each sequence's measured residual variance factor (:func:`residual_variance_factor`)."""
+    by_seq: dict[str, list[int]] = {}
+    for iid in qids:
+        by_seq.setdefault(j.rec.images[iid].name.split("/")[1], []).append(iid)
+    return {q: residual_variance_factor(j.rec, ids, sigma) for q, ids in by_seq.items()}
+
+
+def _with_reference(pose: Pose, c_ref: np.ndarray) -> Pose:
+    """``pose`` with a centre covariance ``c_ref`` (world frame) added as a shift of its centre:
+    ``dt = -R dC``, so its centre covariance grows by exactly ``c_ref``."""
+    add = np.zeros((6, 6))
+    add[3:, 3:] = pose.R @ c_ref @ pose.R.T
+    return Pose(pose.R, pose.t, pose.covariance + add)
+
+
+def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict, ref_model=None,
+                sigma: SigmaSettings = SigmaSettings()):
+    """Each registered query photo's pose (with its covariance: the BA's, scaled by its sequence's
+    residual field, plus the systematic swing on the sequences in ``swung`` and the reference block's
+    own uncertainty from its SfM model folder ``ref_model``), camera and record (``resected``: the
+    photos left out by their sequence's SfM). Returns (poses, cameras, covariances, records, floors:
+    photo -> the centre variance clicks do not lower: the terms added to the BA's, so that the
+    guidance's sigma is the stated one)."""
     rec = j.rec
     qids = [i for i in rec.reg_image_ids() if i not in j.ref_ids]
     poses, cams, covs, per_image = {}, {}, {}, {}
@@ -54,20 +76,37 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict)
         for e in rec.points3D[pid].track.elements:
             n = rec.images[e.image_id].name
             cnt[n] = cnt.get(n, 0) + 1
+    factors = _sequence_factors(j, qids, sigma) if sigma.residual_field else {}
+    shape = (reference_shape(ref_model, {rec.images[i].name for i in j.ref_ids}, sigma)
+             if sigma.reference_shape and ref_model is not None and qids else None)
     floors: dict[str, float] = {}   # photo -> the systematic part's centre variance (clicks do not lower it)
     for iid in qids:
         im = rec.images[iid]
+        seq = im.name.split("/")[1]
         pose = _ba_pose(rec, cov, iid)
         ok = pose.covariance is not None
         sigma_ba = _position_sigma(pose)
-        if ok and swing_px > 0 and im.name.split("/")[1] in swung:
+        terms: dict = {"ba_m": sigma_ba, "residual_factor": factors.get(seq)}
+        if ok and (factors.get(seq) or 0.0) > 1.0:
+            # the scaled part is kept apart as systematic too (the guidance's clicks lower the BA's alone)
+            floors[im.name] = (factors[seq] - 1.0) * sigma_ba ** 2
+            pose = Pose(pose.R, pose.t, pose.covariance * factors[seq])
+        if ok and swing_px > 0 and seq in swung:
             sw = swing_covariance(pose.t, _median_depth(rec, im), rec.cameras[im.camera_id].mean_focal_length(),
                                   swing_px)
-            floors[im.name] = float(np.trace(Pose(pose.R, pose.t, sw).center_covariance()))
+            sw_var = float(np.trace(Pose(pose.R, pose.t, sw).center_covariance()))
+            floors[im.name] = floors.get(im.name, 0.0) + sw_var
+            terms["swing_m"] = float(np.sqrt(sw_var))
             pose = Pose(pose.R, pose.t, pose.covariance + sw)
+        c_ref = reference_term(rec, iid, None, shape) if ok and shape is not None else None
+        if c_ref is not None:
+            terms["reference_m"] = float(np.sqrt(np.trace(c_ref)))
+            terms["reference_residual_factor"] = shape.field_factor
+            floors[im.name] = floors.get(im.name, 0.0) + float(np.trace(c_ref))
+            pose = _with_reference(pose, c_ref)
         poses[im.name] = pose
         cams[im.name] = Camera.from_pycolmap(rec.cameras[im.camera_id])
-        info = {"sequence": im.name.split("/")[1], "n_points": int(im.num_points3D),
+        info = {"sequence": seq, "n_points": int(im.num_points3D),
                 "n_tiepoints": tie_count.get(im.name, 0), "n_auto_tiepoints": auto_count.get(im.name, 0)}
         if im.name in resected:  # left out by its sequence's SfM, registered on its own
             info["resected"] = resected[im.name]
@@ -75,6 +114,7 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict)
             covs[im.name] = pose.covariance
             info["sigma_pos_m"] = _position_sigma(pose)
             info["sigma_rot_deg"] = float(np.degrees(np.sqrt(np.trace(pose.covariance[:3, :3]))))
-            info["sigma_pos_ba_m"] = sigma_ba   # the final BA's alone, without the systematic swing
+            info["sigma_pos_ba_m"] = sigma_ba   # the final BA's alone, without the terms added
+            info["sigma_terms"] = terms
         per_image[im.name] = info
     return poses, cams, covs, per_image, floors

@@ -1,0 +1,98 @@
+"""The terms issue 48 adds to the joint BA's covariance (gtkit/sfm/register/real_photo_terms.py), each
+on a constructed case where the answer is known."""
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+import pytest
+
+from gtkit.pose import Pose, skew
+from gtkit.sfm.register.real_photo_terms import (SigmaSettings, _similarity_datum, reference_shape,
+                                                 residual_variance_factor)
+from gtkit.sfm.register.uncertainty import _with_reference
+
+
+def _block(noise, n_images=9, n_points=1500, seed=0, width=1000, height=800):
+    """Nadir photos (a 3 x 3 grid, 100 m up) over a field, their keypoints the true projections plus
+    ``noise(xy, rng)``."""
+    rng = np.random.default_rng(seed)
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=width, height=height,
+                                                    params=[800.0, 800.0, width / 2, height / 2], camera_id=1))
+    X = np.column_stack([rng.uniform(-80, 80, n_points), rng.uniform(-65, 65, n_points), rng.normal(0, 1, n_points)])
+    R = np.diag([1.0, -1.0, -1.0])   # looking down
+    obs = {}
+    for k in range(n_images):
+        C = np.array([20.0 * (k % 3) - 20.0, 20.0 * (k // 3) - 20.0, 100.0])
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ C)
+        xc = X @ R.T - R @ C
+        uv = 800.0 * xc[:, :2] / xc[:, 2:] + [width / 2, height / 2]
+        inside = np.flatnonzero((uv[:, 0] > 0) & (uv[:, 0] < width) & (uv[:, 1] > 0) & (uv[:, 1] < height))
+        kp = uv[inside] + noise(uv[inside], rng)
+        im = pycolmap.Image(name=f"reference/{k}.jpg", keypoints=kp, camera_id=1, image_id=k + 1)
+        rec.add_image_with_trivial_frame(im, pose)
+        for j, p in enumerate(inside):
+            obs.setdefault(int(p), []).append(pycolmap.TrackElement(k + 1, j))
+    for p, els in obs.items():
+        if len(els) >= 2:
+            rec.add_point3D(X[p], pycolmap.Track(els))
+    return rec
+
+
+def test_the_residual_field_is_one_for_independent_1px_noise_and_grows_where_residuals_move_together():
+    ind = _block(lambda uv, rng: rng.normal(0, 1.0, uv.shape))
+    small = _block(lambda uv, rng: rng.normal(0, 0.3, uv.shape))
+    # a pattern that moves every residual of an image cell together (as a lens / rolling-shutter
+    # model error would), 0.3 px, on top of 0.3 px independent noise
+    pattern = _block(lambda uv, rng: rng.normal(0, 0.3, uv.shape)
+                     + 0.3 * np.column_stack([np.sin(uv[:, 0] / 200.0), np.cos(uv[:, 1] / 150.0)]))
+    ids = list(ind.reg_image_ids())
+    f_ind, f_small, f_pat = (residual_variance_factor(r, ids, SigmaSettings()) for r in (ind, small, pattern))
+    # residuals at the true points: E = sigma^2 per axis for independent noise
+    assert f_ind == pytest.approx(1.0, abs=0.25) and f_small == pytest.approx(0.09, abs=0.05)
+    assert f_pat > 1.0 and f_pat > 10 * f_small, (f_pat, f_small)   # residuals 0.42 px, as `small`'s
+
+
+def test_a_similarity_of_every_centre_is_removed_by_the_datum_and_a_bend_is_kept():
+    rng = np.random.default_rng(1)
+    C = rng.uniform(-100, 100, (12, 3))
+    m = C.mean(0)
+    # a covariance made only of a shift, a turn and a scale of all the centres
+    A = np.vstack([np.hstack([np.eye(3), -skew(c - m), (c - m)[:, None]]) for c in C])
+    G = rng.normal(size=(7, 7))
+    S = A @ (G @ G.T) @ A.T
+    assert np.abs(_similarity_datum(C, S)).max() < 1e-9 * np.abs(S).max()
+    bend = np.zeros(3 * len(C))
+    bend[2::3] = ((C[:, 0] - m[0]) / 100.0) ** 2     # heights bent along x
+    Sb = np.outer(bend, bend)
+    kept = _similarity_datum(C, Sb)
+    assert np.trace(kept) > 0.2 * np.trace(Sb)
+
+
+def test_the_reference_term_adds_its_centre_covariance_exactly():
+    rng = np.random.default_rng(2)
+    pose = Pose(Pose.from_center(np.eye(3), np.array([3.0, -2.0, 50.0])).R,
+                Pose.from_center(np.eye(3), np.array([3.0, -2.0, 50.0])).t, np.diag(rng.uniform(1e-6, 1e-4, 6)))
+    M = rng.normal(size=(3, 3)) * 0.01
+    c_ref = M @ M.T
+    out = _with_reference(pose, c_ref)
+    assert np.allclose(out.center_covariance(), pose.center_covariance() + c_ref)
+    assert np.allclose(out.covariance[:3, :3], pose.covariance[:3, :3])   # rotations untouched
+
+
+def test_the_reference_block_uncertainty_grows_with_its_noise(tmp_path):
+    def shape(noise_px):
+        d = tmp_path / f"n{noise_px}" / "model"
+        d.mkdir(parents=True)
+        _block(lambda uv, rng: rng.normal(0, noise_px, uv.shape)).write(str(d))
+        return reference_shape(d)
+
+    quiet, loud = shape(1.0), shape(3.0)
+    assert quiet is not None and loud is not None and quiet.n_photos == 9
+    # fitted residuals (tracks of 2-4 photos): 1-px noise reads about 0.6, below what scales anything
+    assert 0.4 < quiet.field_factor < 1.0 and quiet.variance_factor == pytest.approx(1.0, abs=0.3)
+    assert loud.field_factor == pytest.approx(9.0 * quiet.field_factor, rel=0.3)
+    assert loud.variance_factor == pytest.approx(9.0, rel=0.3)
+    q = np.median([np.trace(g) for g in quiet.ground.values()])
+    lo = np.median([np.trace(g) for g in loud.ground.values()])
+    assert q > 0 and lo == pytest.approx(loud.field_factor / max(1.0, quiet.field_factor) * q, rel=0.2)
