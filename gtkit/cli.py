@@ -22,6 +22,7 @@ from pathlib import Path
 from . import __version__, commands
 from .errors import GtkitError
 from .logs import quiet_terminal, write_traceback
+from .write_errors import machine_cause
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -82,13 +83,23 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("gtkit: interrupted; finished stages are kept and a re-run resumes", file=sys.stderr)
         return 130
-    except Exception as e:  # a bug, not bad input: one line on the terminal, the traceback in a file
-        where = write_traceback(_error_file(args), f"gtkit {args.command}")
-        first = str(e).splitlines()[0] if str(e) else ""
-        print(f"gtkit: error: {args.command} failed unexpectedly ({type(e).__name__}{': ' + first if first else ''}); "
-              f"the traceback is in {where} (please report it)", file=sys.stderr)
+    except OSError as e:    # the machine's (a full disk, a read-only folder ...), not a bug
+        cause = machine_cause(e)
+        if cause is None:
+            return _unexpected(args, e)
+        print(f"gtkit: error: {args.command}: {cause}", file=sys.stderr)
         return 2
+    except Exception as e:  # a bug, not bad input: one line on the terminal, the traceback in a file
+        return _unexpected(args, e)
     return int(rv or 0)
+
+
+def _unexpected(args, e: BaseException) -> int:
+    where = write_traceback(_error_file(args), f"gtkit {args.command}")
+    first = str(e).splitlines()[0] if str(e) else ""
+    print(f"gtkit: error: {args.command} failed unexpectedly ({type(e).__name__}{': ' + first if first else ''}); "
+          f"the traceback is in {where} (please report it)", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

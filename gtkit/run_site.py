@@ -27,6 +27,7 @@ import numpy as np
 from .errors import GtkitError
 from .io.atomic import write_json
 from .logs import write_traceback
+from .write_errors import machine_cause
 from .project import Project
 from .project_lock import project_lock
 from .sfm import registration_record as record
@@ -80,6 +81,22 @@ def run(root: str | Path, opts: RunOptions | None = None, progress: Callable[[St
         return _run(root, opts, progress, starting)
 
 
+def _unexpected(project: Project, name: str, e: Exception) -> GtkitError:
+    """The error that stops the run at stage ``name`` for an exception that is not a GtkitError:
+    the machine's cause where it is one (gtkit.write_errors: a full disk, a read-only folder, a
+    file removed meanwhile), else a bug: its traceback goes to ``work/errors/<stage>.txt``."""
+    cause = machine_cause(e)
+    if cause is not None:
+        failed = GtkitError(f"stage {name} failed: {cause}")
+        failed.why = cause
+        return failed
+    where = write_traceback(project.paths.work / "errors" / f"{name}.txt", f"stage {name}")
+    why = f"unexpected {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}".rstrip(": ")
+    failed = GtkitError(f"stage {name} failed ({why}); the traceback is in {where} (please report it)")
+    failed.traceback_file, failed.why = where, why
+    return failed
+
+
 def _run(root, opts, progress, starting) -> dict:
     opts = opts or RunOptions()
     project = Project.load(root)
@@ -103,12 +120,9 @@ def _run(root, opts, progress, starting) -> dict:
         except GtkitError as e:
             failed = GtkitError(f"stage {name} failed: {e}")
             res = StageResult(name, "failed", round(time.time() - t0, 1), why=str(e))
-        except Exception as e:  # a bug, not bad input: one line here, the traceback in a file
-            where = write_traceback(project.paths.work / "errors" / f"{name}.txt", f"stage {name}")
-            why = f"unexpected {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}".rstrip(": ")
-            failed = GtkitError(f"stage {name} failed ({why}); the traceback is in {where} (please report it)")
-            failed.traceback_file = where
-            res = StageResult(name, "failed", round(time.time() - t0, 1), why=why)
+        except Exception as e:  # the machine's (a full disk ...) in one line; a bug's traceback in a file
+            failed = _unexpected(project, name, e)
+            res = StageResult(name, "failed", round(time.time() - t0, 1), why=failed.why)
         else:
             after = record_time(project, name)
             status = "up to date" if (before is not None and after == before) or info.pop("_up_to_date", False) else "ran"

@@ -83,6 +83,21 @@ def test_a_full_disk_stops_in_one_line_and_the_next_run_completes(site):
     finished_outputs_are_whole(site)
 
 
+def test_a_write_refused_by_the_system_is_named_in_one_line(site):
+    """A file gtkit itself writes (a texture of the mesh export) under a file-size limit: the line
+    names the file and the cause, not a bug's traceback; the next run writes whole files."""
+    r = gtkit("export", "mesh", site, limit_bytes=20_000)
+    line = refused_in_one_line(r)
+    assert "exports/mesh/" in line and "file-size limit" in line, line
+    assert not list((site / "exports" / "mesh").glob(".*.tmp*")), "a temporary file left behind"
+    r = gtkit("run", site, "--from", "export_mesh", "--until", "export_mesh")
+    assert r.returncode == 0, r.stderr[-2000:]
+    import trimesh
+
+    mesh = trimesh.load(site / "exports" / "mesh" / "model.obj", force="mesh")
+    assert len(mesh.faces) > 1000
+
+
 def test_a_photo_removed_between_stages_is_noticed(site):
     """A reference photo deleted after the SfM: the next run does not reuse the block as if nothing
     changed. It either recomputes without the photo or refuses naming it."""

@@ -7,6 +7,8 @@ import os
 import tempfile
 from pathlib import Path
 
+from ..errors import GtkitError
+
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
@@ -25,6 +27,9 @@ def atomic_path(path: str | Path):
     os.close(fd)
     try:
         yield Path(tmp)
+        if not os.path.exists(tmp):   # a library writer that failed and cleaned up (cv2 under a full disk)
+            raise GtkitError("could not be written (the writer left no file: a full disk, a file-size limit "
+                             "or a read-only folder?)", path)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes files owner-only; give them the usual mode
@@ -35,9 +40,26 @@ def atomic_path(path: str | Path):
 
 
 def write_bytes(path: str | Path, data: bytes) -> Path:
-    with atomic_path(path) as tmp:
-        Path(tmp).write_bytes(data)
+    try:
+        with atomic_path(path) as tmp:
+            Path(tmp).write_bytes(data)
+    except OSError as e:
+        if e.filename is None:   # a failed write() names no file: name the one being written
+            raise OSError(e.errno, e.strerror, str(path)) from None
+        raise
     return Path(path)
+
+
+def write_image(path: str | Path, rgb, params: list[int] | None = None) -> Path:
+    """An RGB image encoded by OpenCV in memory (format by ``path``'s suffix) and written whole, so
+    a failed write raises the system's own error naming the file (cv2.imwrite only returns False)."""
+    import cv2
+    import numpy as np
+
+    ok, buf = cv2.imencode(Path(path).suffix, cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR), params or [])
+    if not ok:
+        raise GtkitError(f"OpenCV cannot encode a {Path(path).suffix} image", path)
+    return write_bytes(path, buf.tobytes())
 
 
 def write_text(path: str | Path, text: str) -> Path:

@@ -165,9 +165,7 @@ def model_shift(path: str | Path, frame=None, crs: str | None = None, offset=Non
 
 def write_obj(path: str | Path, mesh: Mesh, texture_format: str = "jpg") -> Path:
     """Write an OBJ + MTL + one texture per textured part, atomically (files renamed last)."""
-    import cv2
-
-    from .atomic import atomic_path, write_text
+    from .atomic import write_image, write_text
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -184,8 +182,7 @@ def write_obj(path: str | Path, mesh: Mesh, texture_format: str = "jpg") -> Path
         lines += [f"v {x:.4f} {y:.4f} {z:.4f}" for x, y, z in p.vertices]
         if p.uv is not None and p.texture is not None:
             tex_name = f"{path.stem}_{i:03d}.{texture_format}"
-            with atomic_path(path.parent / tex_name) as tmp:
-                cv2.imwrite(str(tmp), cv2.cvtColor(p.texture, cv2.COLOR_RGB2BGR))
+            write_image(path.parent / tex_name, p.texture)
             mtl += [f"newmtl {mat}", "Ka 1 1 1", "Kd 1 1 1", "Ks 0 0 0", "d 1", "illum 1", f"map_Kd {tex_name}", ""]
             lines += [f"vt {u:.6f} {v:.6f}" for u, v in p.uv]
             lines.append(f"usemtl {mat}")

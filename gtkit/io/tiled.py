@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GtkitError
-from .atomic import atomic_path, write_json, write_text
+from .atomic import write_image, write_json, write_text
 from .mesh import Mesh, MeshPart, read_mesh_file, read_offset_sidecar
 from .srs import SrsToWorld, srs_key
 
@@ -332,8 +332,6 @@ def _fmt_rows(a: np.ndarray, prefix: str) -> list[str]:
 def _write_obj_file(path: Path, parts: list[MeshPart], texture_format: str, tag: str) -> None:
     """One OBJ (+ MTL) for parts that are all textured or uniformly coloured (materials), or
     all per-vertex coloured (no materials: trimesh drops vertex colours once a material exists)."""
-    import cv2
-
     per_vertex = all(p.uv is None or p.texture is None for p in parts) and any(
         p.colors is not None and len(np.unique(p.colors, axis=0)) > 1 for p in parts)
     lines, mtl = ([] if per_vertex else [f"mtllib {path.stem}.mtl"]), []
@@ -353,9 +351,7 @@ def _write_obj_file(path: Path, parts: list[MeshPart], texture_format: str, tag:
         lines += _fmt_rows(p.vertices, "v ")
         if p.uv is not None and p.texture is not None:
             tex_name = f"{mat}.{texture_format}"
-            with atomic_path(path.parent / tex_name) as tmp:
-                if not cv2.imwrite(str(tmp), cv2.cvtColor(np.ascontiguousarray(p.texture), cv2.COLOR_RGB2BGR)):
-                    raise GtkitError("cannot write texture", path.parent / tex_name)
+            write_image(path.parent / tex_name, p.texture)
             mtl += [f"newmtl {mat}", "Ka 1 1 1", "Kd 1 1 1", "Ks 0 0 0", "d 1", "illum 1", f"map_Kd {tex_name}", ""]
             lines += _fmt_rows(p.uv, "vt ")
             lines.append(f"usemtl {mat}")
