@@ -286,6 +286,73 @@ def _old_wall(name: str, recs: list[dict], dirs: list[Path]) -> float | None:
     return round(total, 1)
 
 
+def _photo_sizes(root: Path) -> dict[str, tuple[int, int]]:
+    """(width, height) of the first reference, wide and zoom photo (their JPEG headers)."""
+    from PIL import Image
+
+    out = {}
+    for kind, pattern in (("reference", "reference/**/*.jpg"), ("wide", "queries/**/*_W.jpg"),
+                          ("zoom", "queries/**/*_Z.jpg")):
+        first = next(iter(sorted((root / "images").glob(pattern))), None)
+        if first is not None:
+            with Image.open(first) as im:
+                out[kind] = im.size
+    return out
+
+
+def working_resolutions(root: Path) -> list[tuple[str, str, str]]:
+    """(stage, what it works on, long side it works at) from the stage records (issue 48): each stage's
+    working resolution beside the photos' own size."""
+    work = root / "work"
+    sizes = _photo_sizes(root)
+    side = {k: max(v) for k, v in sizes.items()}
+
+    def settings(folder):
+        return (_json(work / folder / "stage.json").get("settings") or {}) if folder else {}
+
+    def at(value, photo):
+        if value is None:
+            return "-"
+        full = side.get(photo)
+        if not full or not value or value >= full:
+            return f"full ({full or '?'} px)"
+        return f"{value} px of {full} ({value / full:.2f})"
+    rows = []
+    sfm = settings("sfm_reference").get("features", {}).get("max_image_size")
+    rows.append(("sfm_reference", "SIFT of the reference photos", at(sfm, "reference")))
+    qdirs = sorted(work.glob("sfm_queries/*/stage.json"))
+    q = (_json(qdirs[0]).get("settings") or {}).get("features", {}).get("max_image_size") if qdirs else None
+    rows.append(("sfm_queries", "SIFT of the wide photos", at(q, "wide")))
+    m = settings("model").get("max_image_size")
+    rows.append(("model", "depth maps and texture views", at(m, "reference") if m else "- (model delivered)"))
+    ali = _json(root / "reports" / "overlays" / "alignment.json")
+    ov = (ali.get("settings") or {}).get("max_side")
+    meas = (ali.get("working_resolution") or {}).get("measure_side")
+    rows.append(("overlays", "render + photo (PNG) / the measures",
+                 f"{at(ov, 'reference')} / {meas or 768} px"))
+    rd = settings("render_db")
+    rows.append(("render_db", "database views (rendered)",
+                 f"{rd.get('width')} x {rd.get('height')}" if rd else "-"))
+    loc = settings("localize").get("features", {}).get("max_side")
+    rows.append(("localize", "query features (wide)", at(loc, "wide")))
+    rig = settings("rig")
+    rows.append(("track (rig)", "wide photo for the zoom match",
+                 at(rig.get("wide_max_side"), "wide") if rig and "wide_max_side" in rig else
+                 ("full (no working size)" if rig else "-")))
+    return rows
+
+
+def working_resolution_lines(projects: list[Path]) -> str:
+    out = []
+    for p in projects:
+        rows = working_resolutions(p)
+        sizes = ", ".join(f"{k} {w} x {h}" for k, (w, h) in _photo_sizes(p).items())
+        out += ["", f"working resolution, {p.name} (photos: {sizes})", "",
+                "| stage | works on | working size (long side) |", "|---|---|---|"]
+        out += [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    return "\n".join(out)
+
+
 # --- the table ------------------------------------------------------------------------------
 
 def fit_exponent(x: list[float], y: list[float]) -> float | None:
@@ -378,7 +445,9 @@ def table(projects: list[Path], per_site: bool = False) -> tuple[str, dict]:
             lines.append(f"| {name.strip()} | {drv} | " + " | ".join(_f(row[k], "{:.2f}") for k in
                                                                     ("wall_s", "cpu_s", "peak_gb", "disk_mb")) + " |")
     lines += ["", db_feature_lines(sites, costs)]
-    return "\n".join(lines), {"sites": sites, "costs": costs, "exponents": fits}
+    lines += [working_resolution_lines(projects)]
+    return "\n".join(lines), {"sites": sites, "costs": costs, "exponents": fits,
+                              "working_resolution": {str(p): working_resolutions(p) for p in projects}}
 
 
 def db_feature_lines(sites: list[dict], costs: list[dict]) -> str:

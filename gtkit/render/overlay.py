@@ -536,6 +536,9 @@ def write_overlays(project_dir: str | Path, pose_file: str | Path | None, out_di
                "measures": "misalignment_px: median local shift (phase correlation, 96-px tiles); "
                            "edge_distance_px: symmetric median oriented Canny-edge distance; "
                            "both in full-resolution pixels (see gtkit.render.overlay)",
+               "working_resolution": {"png_max_side": st.max_side, "measure_side": MEASURE_SIDE,
+                                      "note": "photos are decoded and rendered at png_max_side (long side), "
+                                              "measured at measure_side; figures in full-resolution pixels"},
                "median_misalignment_px": med("misalignment_px"),
                "median_edge_distance_px": med("edge_distance_px"),
                "n_rendered": len(names) - n_reused,
