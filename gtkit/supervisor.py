@@ -25,6 +25,7 @@ from pathlib import Path
 # lines of a stage log that say why a library stopped the process, most telling first
 CAUSE = re.compile(r"what\(\):\s*(.+)|Check failed:\s*(.+)|(SQLite error.*)|(std::bad_alloc.*)|(MemoryError.*)")
 LOW_DISK_BYTES = 200 * 2**20
+SUPERVISED = "GTKIT_SUPERVISED"   # set in the child's environment
 
 
 def _project_of(argv: list[str]) -> Path | None:
@@ -99,7 +100,7 @@ def run_supervised(child_argv: list[str], command: str, argv: list[str]) -> int:
     2 with :func:`death_line` when a signal ended it. Ctrl-C reaches the child (same process group),
     which reports it itself; SIGTERM / SIGHUP sent to this process are passed on."""
     since = time.time()
-    child = subprocess.Popen(child_argv, preexec_fn=_die_with_parent if sys.platform == "linux" else None)
+    child = subprocess.Popen(child_argv, env={**os.environ, SUPERVISED: "1"}, preexec_fn=_die_with_parent if sys.platform == "linux" else None)
 
     def forward(signum, _frame):
         child.send_signal(signum)

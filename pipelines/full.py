@@ -126,7 +126,15 @@ def _print_summary(s: dict) -> None:
 
 
 if __name__ == "__main__":
-    from gtkit.logs import quiet_terminal
+    import os
+
+    from gtkit.supervisor import SUPERVISED, run_supervised
+
+    if not os.environ.get(SUPERVISED) and not os.environ.get("GTKIT_NO_CHILD"):   # as the gtkit command
+        sys.exit(run_supervised([sys.executable, "-m", "pipelines.full", *sys.argv[1:]], "python -m pipelines.full",
+                                sys.argv[1:]))
+    from gtkit.logs import quiet_terminal, write_traceback
+    from gtkit.write_errors import machine_cause
 
     ap = argparse.ArgumentParser(prog="python -m pipelines.full", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -145,11 +153,24 @@ if __name__ == "__main__":
         print(f"[{r.name}] " + (f"skipped: {r.why}" if r.status == "skipped" else f"{r.status} in {r.seconds} s"),
               flush=True)
 
+    stage_log = None
     try:
         with quiet_terminal(a.verbose) as stage_log:
             summary = main(a.project, a.preset, a.seed, progress, starting)
         _print_summary(summary)
     except GtkitError as e:
-        print(f"gtkit: error: {e}" + (f" (full log: {stage_log.log_path})" if stage_log.log_path else ""),
-              file=sys.stderr)
+        told = getattr(e, "traceback_file", None) is not None
+        log = getattr(stage_log, "log_path", None)
+        print(f"gtkit: error: {e}" + (f" (full log: {log})" if log and not told else ""), file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print("gtkit: interrupted; finished stages are kept and a re-run resumes", file=sys.stderr)
+        sys.exit(130)
+    except Exception as e:  # the machine's cause in one line, else a bug: its traceback in a file
+        cause = machine_cause(e)
+        if cause is None:
+            where = write_traceback(Path(a.project) / "work" / "errors" / "main_job.txt", "python -m pipelines.full")
+            cause = (f"failed unexpectedly ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
+                     f"the traceback is in {where} (please report it)")
+        print(f"gtkit: error: the main job: {cause}", file=sys.stderr)
         sys.exit(2)
