@@ -213,7 +213,7 @@ def run(project: Project | str | Path, settings: CoordinatesSettings,
     written: dict[str, Path] = {}
     if not pose_files:
         log.warning("no pose file (give --poses; looked for %s)",
-                    ", ".join(str(project.paths.poses(s).relative_to(project.paths.root)) for s in POSE_STAGES))
+                    ", ".join(str(proj.paths.poses(s).relative_to(proj.paths.root)) for s in POSE_STAGES))
     else:
         cams = cameras_from_poses(pose_files)
         if cams:
