@@ -15,7 +15,7 @@ from gtkit.errors import GtkitError
 from gtkit.gcp.marking import Block, Solution, load_block, solve
 from gtkit.gcp.site import import_points, load_marking, save_clicks, settings_for
 
-from .write_guard import saving
+from .write_guard import save_under_lock
 
 
 class GcpStore:
@@ -63,8 +63,8 @@ class GcpStore:
 
     # --- edits (each one saved before returning) ---------------------------------------------
     def save(self):
-        with saving(self.guard):
-            save_clicks(self.project, self.points, self.clicks)
+        if not save_under_lock(self.guard, lambda: save_clicks(self.project, self.points, self.clicks)):
+            return   # another writer took the project meanwhile: kept in memory, written at the next save
         self._mtime = self._stat()
         self._solution = None
         self.n_writes += 1

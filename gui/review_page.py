@@ -18,7 +18,7 @@ from gtkit.render.overlay import MODES, OverlayScene, alignment, compose, defaul
 from gtkit.review import STATUSES, read_review, set_status
 
 from .image_view import ImageView
-from .write_guard import WriteGuard
+from .write_guard import WriteGuard, save_under_lock
 
 log = logging.getLogger(__name__)
 ROLE = Qt.ItemDataRole.UserRole
@@ -235,8 +235,12 @@ class ReviewPage(QWidget):
         info = {"pose_file": self.stored_pose_file()}
         if a is not None and np.isfinite(a.misalignment_px):
             info["misalignment_px"] = round(a.misalignment_px, 3)
-        with self.guard.saving():
-            verdicts = set_status(self.paths.review, self.image, status, self.note.currentText(), **info)
+        out = {}
+        if not save_under_lock(self.guard, lambda: out.update(v=set_status(self.paths.review, self.image, status,
+                                                                            self.note.currentText(), **info))):
+            self.status.emit(f"not saved: {self.guard.refused}")
+            return
+        verdicts = out["v"]
         it = self.list.currentItem()
         if it is not None:
             it.setText(f"{MARK[status]} {self.image}")

@@ -14,7 +14,7 @@ from pathlib import Path
 from gtkit.io.atomic import write_text
 from gtkit.io.tiepoints import FORMAT, VERSION, Observation, TiePoint, read_tiepoints
 
-from .write_guard import saving
+from .write_guard import save_under_lock
 
 
 def tiepoints_json(tiepoints: list[TiePoint]) -> str:
@@ -75,8 +75,8 @@ class TiePointStore:
 
     # --- edits (each one saved before returning) ------------------------------------------
     def save(self) -> None:
-        with saving(self.guard):
-            write_text(self.path, tiepoints_json(self.tiepoints))  # atomic: temp file, fsync, rename
+        if not save_under_lock(self.guard, lambda: write_text(self.path, tiepoints_json(self.tiepoints))):
+            return   # another writer took the project meanwhile: kept in memory, written at the next save
         self.n_writes += 1
         if self.on_saved:
             self.on_saved(self)

@@ -25,7 +25,7 @@ from pathlib import Path
 from gtkit.errors import GtkitError
 from gtkit.track.targets import Detection, read_csv, resolve_images, write_csv
 
-from .write_guard import saving
+from .write_guard import save_under_lock
 
 COMMENT = ("gtkit annotate: target clicks (x,y = foot point) or boxes in zoom photos, pixels in the COLMAP "
            "convention (the photo spans [0,W]x[0,H]); read by `gtkit track`")
@@ -114,8 +114,8 @@ class TargetStore:
     # --- edits (each one saved before returning) ---------------------------------------------
     def save(self) -> None:
         dets = [Detection(t.image, t.x, t.y, t.label, t.time, t.box) for t in self.targets]
-        with saving(self.guard):
-            write_csv(self.path, dets, COMMENT)  # atomic: temp file, fsync, rename
+        if not save_under_lock(self.guard, lambda: write_csv(self.path, dets, COMMENT)):
+            return   # another writer took the project meanwhile: kept in memory, written at the next save
         self._stamp = self._disk_stamp()
         self.n_writes += 1
         if self.on_saved:

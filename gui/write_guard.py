@@ -9,10 +9,13 @@ write nothing, so the run never reads a file the annotator is changing under it.
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 from pathlib import Path
 
-from gtkit.project_lock import Holder, holder, project_lock
+from gtkit.project_lock import Holder, ProjectLocked, holder, project_lock
+
+log = logging.getLogger(__name__)
 
 
 class WriteGuard:
@@ -21,6 +24,7 @@ class WriteGuard:
         self.ttl_s = ttl_s            # a page asks on every click: look at the lock at most this often
         self._checked = -1e9
         self._holder: Holder | None = None
+        self.refused: str | None = None   # why the last save was not written (save_under_lock)
 
     def holder(self) -> Holder | None:
         """The other process writing the project now (None: the annotator may save)."""
@@ -48,3 +52,20 @@ class WriteGuard:
 def saving(guard: WriteGuard | None):
     """``guard.saving()``, or nothing to hold for a store used without a project (tests, tools)."""
     return guard.saving() if guard is not None else contextlib.nullcontext()
+
+
+def save_under_lock(guard: WriteGuard | None, write) -> bool:
+    """``write()`` holding the project's lock. False, with nothing written, where another process
+    took the lock in the instant since the page looked: the edit stays in memory (the stores write
+    their whole file at each save, so the next save after the writer ends writes it too) and
+    ``guard.refused`` says why, for the status bar; never an exception into a Qt slot."""
+    try:
+        with saving(guard):
+            write()
+    except ProjectLocked as e:
+        log.warning("not saved: %s", e)
+        guard.refused = str(e)
+        return False
+    if guard is not None:
+        guard.refused = None
+    return True

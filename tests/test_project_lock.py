@@ -206,3 +206,27 @@ def test_two_runs_started_together_one_completes_other_refuses(tiny_sample, tmp_
     s = json.loads((root / "reports" / "run.json").read_text())
     assert s["pseudo_gt"]["n_registered"] == s["pseudo_gt"]["n_images"] > 0
     assert read_holder(root) is None
+
+
+def test_a_save_racing_a_writer_keeps_the_edit_and_raises_nothing(site):
+    """The lock taken by another process between the page's look and the save (the race the
+    banner cannot close): the store writes nothing and raises nothing into the Qt slot; the edit
+    stays in memory and the next save after the writer ends writes it."""
+    from gtkit.io.tiepoints import Observation, TiePoint, read_tiepoints
+    from gui.store import TiePointStore
+    from gui.write_guard import WriteGuard
+
+    guard = WriteGuard(site, ttl_s=1e9)
+    guard._checked = time.monotonic()           # the page looked a moment ago: nobody writing
+    store = TiePointStore(site / "tiepoints.json", guard=guard)
+    h = _holder(site, f"gtkit run {site}")
+    try:
+        store.insert(TiePoint("t1", [Observation("reference/a.jpg", 10.0, 20.0)]))
+        assert store.n_writes == 0 and not (site / "tiepoints.json").exists()
+        assert f"pid {h.pid}" in guard.refused and len(store) == 1
+    finally:
+        h.kill()
+        h.wait()
+    store.insert(TiePoint("t2", [Observation("reference/b.jpg", 30.0, 40.0)]))
+    assert store.n_writes == 1 and guard.refused is None
+    assert [t.id for t in read_tiepoints(site / "tiepoints.json")] == ["t1", "t2"]
