@@ -66,7 +66,7 @@ class Stage:
     command: str                                # the command that runs it alone
     sections: tuple[tuple[str, str], ...]       # (project.toml section, 'module:SettingsFactory')
     reads: tuple[str, ...]                      # project-relative paths it reads
-    writes: tuple[str, ...]                     # project-relative paths it writes
+    writes: tuple[str, ...]                     # project-relative paths it writes (a folder ends in /; * a glob)
     run: Callable[[Project, Any, Context], dict] = field(repr=False)
     record: str | None = None                   # work/<record>/stage.json: whether it ran or was up to date
 
@@ -319,7 +319,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("sfm_reference", "SfM of the reference block, georegistered", "gtkit sfm DIR --block reference",
           (("sfm", "gtkit.sfm.blocks:SfmSettings"),),
           ("images/reference/", "gcp_list.txt", "geo.txt", "cameras.txt"),
-          ("work/sfm_reference/", "reports/reference.md"), _sfm_reference, "sfm_reference"),
+          ("work/sfm_reference/", "reports/reference.md", "reports/reference.json"), _sfm_reference, "sfm_reference"),
     Stage("model", "the reference model from the photos, when none was imported", "gtkit model build DIR",
           (("model_build", "gtkit.model.settings:ModelSettings"),),
           ("images/reference/", "work/sfm_reference/"), ("work/model/", "model/"), _model, "model"),
@@ -333,15 +333,15 @@ STAGES: tuple[Stage, ...] = (
     Stage("report", "the pseudo-GT quality report", "gtkit report DIR",
           (("report", "gtkit.evaluate.gt_report:ReportSettings"),),
           ("work/sfm_reference/", "work/sfm_queries/", "work/register/", "review.json"),
-          ("reports/gt_report.json", "reports/gt_report.md"), _report),
+          ("reports/gt_report.json", "reports/gt_report.md", "reports/gt_pos_err.svg", "reports/gt_sigma.svg"), _report),
     Stage("export_dsm", "DSM GeoTIFF of the reference model", "gtkit export dsm DIR",
-          (("export_dsm", "gtkit.export.dsm:DsmSettings"),), ("model/",), ("exports/dsm.tif",),
+          (("export_dsm", "gtkit.export.dsm:DsmSettings"),), ("model/",), ("exports/dsm.tif", "work/export_dsm/"),
           _export_dsm, "export_dsm"),
     Stage("export_ortho", "true orthophoto GeoTIFF of the reference model", "gtkit export ortho DIR",
-          (("export_ortho", "gtkit.export.ortho:OrthoSettings"),), ("model/",), ("exports/ortho.tif",),
+          (("export_ortho", "gtkit.export.ortho:OrthoSettings"),), ("model/",), ("exports/ortho.tif", "work/export_ortho/"),
           _export_ortho, "export_ortho"),
     Stage("export_mesh", "textured mesh in the project CRS", "gtkit export mesh DIR",
-          (("export_mesh", "gtkit.export.mesh_export:MeshExportSettings"),), ("model/",), ("exports/mesh/",),
+          (("export_mesh", "gtkit.export.mesh_export:MeshExportSettings"),), ("model/",), ("exports/mesh/", "work/export_mesh_*/"),
           _export_mesh, "export_mesh_*"),
     Stage("overlays", "the model drawn over each posed photo, with its misalignment", "gtkit overlay DIR",
           (("overlay", "gtkit.render.overlay:OverlaySettings"),),
@@ -351,7 +351,7 @@ STAGES: tuple[Stage, ...] = (
           ("work/render_db/",), _render_db, "render_db"),
     Stage("localize", "every query photo localized against the database", "gtkit localize DIR",
           (("localize", "gtkit.localize.localize:settings_for"),), ("work/render_db/", "images/queries/"),
-          ("work/localize/",), _localize, "localize"),
+          ("work/localize/", "work/localize_db/"), _localize, "localize"),
     Stage("track", "targets from zoom-photo detections (rig, ray cast on the DSM)",
           "gtkit track calibrate DIR; gtkit track DIR",
           (("rig", "gtkit.track.rig:RigCalibrationSettings"), ("track", "gtkit.track.tracker:TrackSettings")),
@@ -360,7 +360,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("export_coords", "cameras, GCPs and tracks as CSV / GeoJSON / geo.txt", "gtkit export coords DIR",
           (("export_coordinates", "gtkit.export.coordinates:CoordinatesSettings"),),
           ("work/register/poses.txt", "work/sfm_reference/poses.txt", "gcp_list.txt", "exports/tracks.csv"),
-          ("exports/coordinates/",), _export_coords, "export_coordinates"),
+          ("exports/coordinates/", "work/export_coordinates/"), _export_coords, "export_coordinates"),
 )
 STAGE: dict[str, Stage] = {s.name: s for s in STAGES}
 NAMES: tuple[str, ...] = tuple(STAGE)
