@@ -61,6 +61,18 @@ def test_bad_coordinates_one_line_naming_file_and_line(tmp_path, text, expect):
     assert "\n" not in msg and msg.startswith(str(f)) and expect in msg, msg
 
 
+def test_every_bad_coordinate_line_named_at_once(tmp_path):
+    f = _write(tmp_path, "EPSG:32650\ng1 241867 3379483 22\ng2 2418x7 3379483 22\ng3 1 2\ng1 241868 3379484 22\n"
+                         "g4 241867 3379483 22 0\n")
+    with pytest.raises(GtkitError) as e:
+        read_points(f, FRAME)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{f}: 4 bad lines: "), msg
+    for want in ("line 3: x '2418x7' is not a number", "line 4: expected 'name x y z", "line 5: duplicate GCP name 'g1'",
+                 "line 6: accuracy must be > 0"):
+        assert want in msg, msg
+
+
 def test_gcp_list_written_and_read_back(tmp_path):
     gcps = [GCP("g1", np.array([1.0, 2.0, 3.0]), [GCPClick("R1.jpg", 10.25, 20.5), GCPClick("R2.jpg", 30.0, 40.0)]),
             GCP("c1", np.array([-4.0, 5.5, 6.0]), [GCPClick("R1.jpg", 1.5, 2.5)], check=True),

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GtkitError
+from ..errors import GtkitError, Problems
 from ..geo import GeoFrame
 from ..io.atomic import write_text
 from ..io.odm import CHECK_WORDS, parse_odm_crs
@@ -64,10 +64,25 @@ def _float(v: str, what: str, n: int, path) -> float:
     return x
 
 
+def _point_row(s: str, n: int, path) -> tuple[str, list[float], list[float], bool]:
+    """One line: (name, x y z, accuracies, check); GtkitError naming the line where it is bad."""
+    f = [x for x in _SPLIT.split(s) if x]
+    check = False
+    if f and f[-1].lower() in CHECK_WORDS + ("gcp", "control"):
+        check = f.pop().lower() in CHECK_WORDS
+    if len(f) < 4 or len(f) > 6:
+        raise GtkitError(f"line {n}: expected 'name x y z [acc_h [acc_v]] [check]', got {len(f)} fields", path)
+    xyz = [_float(v, w, n, path) for v, w in zip(f[1:4], ("x", "y", "z"))]
+    acc = [_float(v, "accuracy", n, path) for v in f[4:]]
+    if any(a <= 0 for a in acc):
+        raise GtkitError(f"line {n}: accuracy must be > 0 m, got {' '.join(f[4:])}", path)
+    return f[0], xyz, acc, check
+
+
 def read_points(path: str | Path, frame: GeoFrame, crs: str | None = None) -> tuple[list[GCPPoint], str]:
     """(points in ``frame``'s local world frame, the CRS they were given in). One line naming the
-    file, the line and the problem on bad input: an unknown CRS, a non-numeric field, a duplicate
-    name, a row with too few fields."""
+    file and every bad line with its problem (:class:`gtkit.errors.Problems`): a non-numeric field,
+    a duplicate name, a row with too few fields; or an unknown CRS."""
     path = Path(path)
     if not path.is_file():
         raise GtkitError("file not found", path)
@@ -90,24 +105,21 @@ def read_points(path: str | Path, frame: GeoFrame, crs: str | None = None) -> tu
         rows.pop(0)  # a header row of column names
     pts: dict[str, GCPPoint] = {}
     geo = []
+    bad = Problems(path)     # every bad line at once
     for n, s in rows:
-        f = [x for x in _SPLIT.split(s) if x]
-        check = False
-        if f and f[-1].lower() in CHECK_WORDS + ("gcp", "control"):
-            check = f.pop().lower() in CHECK_WORDS
-        if len(f) < 4 or len(f) > 6:
-            raise GtkitError(f"line {n}: expected 'name x y z [acc_h [acc_v]] [check]', got {len(f)} fields", path)
-        name = f[0]
-        xyz = [_float(v, w, n, path) for v, w in zip(f[1:4], ("x", "y", "z"))]
-        acc = [_float(v, "accuracy", n, path) for v in f[4:]]
-        if any(a <= 0 for a in acc):
-            raise GtkitError(f"line {n}: accuracy must be > 0 m, got {' '.join(f[4:])}", path)
+        try:
+            name, xyz, acc, check = _point_row(s, n, path)
+        except GtkitError as e:
+            bad.add(None, str(e).split(": ", 1)[-1])
+            continue
         if name in pts:
-            raise GtkitError(f"line {n}: duplicate GCP name {name!r} (first on line {pts[name].line})", path)
+            bad.add(f"line {n}", f"duplicate GCP name {name!r} (first on line {pts[name].line})")
+            continue
         acc_h = acc[0] if acc else None
         acc_v = acc[1] if len(acc) > 1 else acc_h
         pts[name] = GCPPoint(name, np.zeros(3), acc_h, acc_v, check, n)
         geo.append(xyz)
+    bad.raise_if_any()
     if not pts:
         raise GtkitError("no GCPs in this file (expected 'name x y z' lines)", path)
     try:
