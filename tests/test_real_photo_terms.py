@@ -12,7 +12,7 @@ from gtkit.sfm.register.real_photo_terms import (SigmaSettings, _similarity_datu
 from gtkit.sfm.register.uncertainty import _with_reference
 
 
-def _block(noise, n_images=9, n_points=1500, seed=0, width=1000, height=800):
+def _block(noise, n_images=9, n_points=1500, seed=0, width=1000, height=800, spacing=20.0):
     """Nadir photos (a 3 x 3 grid, 100 m up) over a field, their keypoints the true projections plus
     ``noise(xy, rng)``."""
     rng = np.random.default_rng(seed)
@@ -23,7 +23,7 @@ def _block(noise, n_images=9, n_points=1500, seed=0, width=1000, height=800):
     R = np.diag([1.0, -1.0, -1.0])   # looking down
     obs = {}
     for k in range(n_images):
-        C = np.array([20.0 * (k % 3) - 20.0, 20.0 * (k // 3) - 20.0, 100.0])
+        C = np.array([spacing * (k % 3 - 1), spacing * (k // 3 - 1), 100.0])
         pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ C)
         xc = X @ R.T - R @ C
         uv = 800.0 * xc[:, :2] / xc[:, 2:] + [width / 2, height / 2]
@@ -96,3 +96,15 @@ def test_the_reference_block_uncertainty_grows_with_its_noise(tmp_path):
     q = np.median([np.trace(g) for g in quiet.ground.values()])
     lo = np.median([np.trace(g) for g in loud.ground.values()])
     assert q > 0 and lo == pytest.approx(loud.field_factor / max(1.0, quiet.field_factor) * q, rel=0.2)
+
+
+def test_a_large_reference_block_is_cut_to_the_photos_the_queries_tie_to_and_their_neighbours(tmp_path):
+    d = tmp_path / "model"
+    d.mkdir()
+    rec = _block(lambda uv, rng: rng.normal(0, 1.0, uv.shape), spacing=70.0)   # corner photos do not overlap
+    rec.write(str(d))
+    near = {rec.images[e.image_id].name for p in rec.images[1].points2D if p.has_point3D()
+            for e in rec.points3D[p.point3D_id].track.elements}
+    assert 3 <= len(near) < 9
+    cut = reference_shape(d, {"reference/0.jpg"}, SigmaSettings(max_photos=3))
+    assert cut is not None and set(cut.ground) == near and cut.variance_factor is None   # (a part: no sigma0)

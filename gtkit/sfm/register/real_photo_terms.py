@@ -24,8 +24,8 @@ project's own blocks (never on truth):
   or rolling-shutter model error, automatic ties of one texture) more. The BA's covariance is scaled
   by it where it exceeds 1. It is measured on fitted residuals, which the points and poses have
   partly absorbed (independent 1-px noise on tracks of 2-4 photos reads about 0.6), so it errs
-  towards the smaller sigma. Sample sites' query photos: 0.20-0.23 (residuals 0.41 px and nearly
-  independent, so unchanged); Brighton: 2.5-3.3 (0.5 px residuals, cell means 10-12x what
+  towards the smaller sigma. Sample sites' sequences: 0.13-0.30 (residuals 0.41 px and nearly
+  independent, so unchanged); Brighton: 2.3-3.3 (0.5 px residuals, cell means 10-13x what
   independence gives).
 """
 from __future__ import annotations
