@@ -6,8 +6,8 @@ clicks, judged against the yardstick SfM of all 18 photos by ``benchmarks/bench_
 each held-out photo's error within 2 sqrt(sigma^2 + yardstick^2), the yardstick's noise its median
 misfit on the photos both blocks share (measured, not assumed).
 
-GTKIT_SLOW=1: 8 minutes on 2 loaded cores (a yardstick SfM and three held-out runs; passed 2026-12-06). Measured figures
-are in docs/benchmarks.md, "Sigma on real photos (issue 48)"."""
+GTKIT_SLOW=1: 8 minutes on 2 loaded cores (a yardstick SfM and three held-out runs; passed
+2026-12-06). Measured figures are in docs/benchmarks.md, "Sigma on real photos (issue 48)"."""
 from __future__ import annotations
 
 import os
