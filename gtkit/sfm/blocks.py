@@ -20,6 +20,7 @@ import numpy as np
 import pycolmap
 
 from ..camera import Camera
+from ..determinism import ba_threads, single_thread_mapper
 from ..errors import GtkitError
 from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
@@ -85,6 +86,12 @@ class SfmSettings:
     # a stage, 9 % more CPU)
     mapper_ba_threads_from_residuals: int = 50000
     num_threads: int = 2
+    # the mapper and every bundle adjustment of the block on one thread (feature extraction and matching
+    # keep num_threads): the same photos and settings give the same block bit for bit (gtkit.determinism:
+    # on two threads Ceres sums in the order its threads finish and the mapper's RANSACs race; tiny seeds
+    # 0 / 2: blocks 30 mm / 0.8 m apart run to run, pseudo-GT 0.22 / 0.12 m at worst). Its cost:
+    # docs/benchmarks.md, "Reproducible poses (issue 49)"
+    reproducible: bool = True
     hold_by_positions: bool = True       # reference block: its positions as priors in a BA after georegistration (prior_ba)
 
 
@@ -268,7 +275,7 @@ def incremental_options(settings: SfmSettings, policy: dict) -> pycolmap.Increme
     opts.mapper.init_min_tri_angle = settings.init_min_tri_angle_deg
     opts.mapper.filter_min_tri_angle = settings.min_tri_angle_deg
     opts.triangulation.min_angle = settings.min_tri_angle_deg
-    return opts
+    return single_thread_mapper(opts, settings.reproducible)
 
 
 def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: dict, n_images: int,
@@ -294,7 +301,7 @@ def _map(db: Path, image_root: Path, out: Path, settings: SfmSettings, policy: d
     opts = incremental_options(settings, policy)
     if name == "seeded":
         s = seeded_mapping(db, priors["names"], priors["positions"], priors["accuracy"], priors["metas"], opts,
-                           num_threads=settings.num_threads)
+                           num_threads=ba_threads(settings.num_threads, settings.reproducible))
         record["seeded"] = s.record
         if s.rec is not None:
             record["prior_outliers"] = sorted(s.outliers)
@@ -315,11 +322,12 @@ def _map_global(db: Path, image_root: Path, out: Path, settings: SfmSettings, po
     (no per-camera constants): with any fixed camera (cameras.txt) none is refined here; the final
     BA of :func:`build_block` still refines the free ones. GPS priors do not enter its BA."""
     opts = pycolmap.GlobalPipelineOptions()
-    opts.num_threads = settings.num_threads
+    # reproducible: on one thread (rotation averaging, positioning and BA all run Ceres); not measured
+    opts.num_threads = ba_threads(settings.num_threads, settings.reproducible)
     opts.random_seed = 0
     opts.min_num_matches = settings.matching.min_num_inliers
     opts.min_model_size = 3
-    opts.mapper.num_threads = settings.num_threads
+    opts.mapper.num_threads = opts.num_threads
     opts.mapper.random_seed = 0
     opts.mapper.min_tri_angle_deg = settings.min_tri_angle_deg
     opts.mapper.retriangulation.min_angle = settings.min_tri_angle_deg
@@ -338,7 +346,8 @@ def _map_global(db: Path, image_root: Path, out: Path, settings: SfmSettings, po
     return sorted(models.values(), key=lambda r: -r.num_reg_images())
 
 
-def _final_bundle_adjustment(rec: pycolmap.Reconstruction, free: set[int], principal_point: set[int]) -> None:
+def _final_bundle_adjustment(rec: pycolmap.Reconstruction, free: set[int], principal_point: set[int],
+                             num_threads: int = -1) -> None:
     """One global BA refining focal + distortion of the cameras in ``free`` (and the principal point
     of those in ``principal_point``, which had no calibration prior at all); the others constant."""
     for cams, pp in ((free - principal_point, False), (principal_point, True)):
@@ -348,6 +357,7 @@ def _final_bundle_adjustment(rec: pycolmap.Reconstruction, free: set[int], princ
         opts.refine_focal_length = True
         opts.refine_principal_point = pp
         opts.refine_extra_params = True
+        opts.ceres.solver_options.num_threads = num_threads
         config = pycolmap.BundleAdjustmentConfig()
         for iid in rec.reg_image_ids():
             config.add_image(iid)
@@ -570,7 +580,7 @@ def _hold_by_positions(rec, kind: str, settings: SfmSettings, summary: dict, pos
         before_ba = pycolmap.Reconstruction(rec)
         held = hold_by_positions(rec, positions, set(geo.get("outliers", []))
                                  | set(mapper_record.get("prior_outliers", [])), accuracy,
-                                 num_threads=settings.num_threads)
+                                 num_threads=ba_threads(settings.num_threads, settings.reproducible))
         res = held.get("residual_median_m") or {}
         if held.get("applied") and res and res["after"] > max(2.0 * res["before"], res["before"] + 0.05):
             # the BA moved the block off the positions it was fitted to (pycolmap's prior alignment
@@ -683,7 +693,8 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
             if fo["observable"]:
                 free |= policy["exif_focal"]
         if free:
-            _final_bundle_adjustment(r, free & set(r.cameras), policy["self_calibrate"])
+            _final_bundle_adjustment(r, free & set(r.cameras), policy["self_calibrate"],
+                                     ba_threads(settings.num_threads, settings.reproducible))
     if focal_check is not None:
         summary["intrinsics_policy"]["exif_focal_check"] = focal_check
         summary["intrinsics_policy"]["exif_focal_refined"] = focal_check["observable"]
