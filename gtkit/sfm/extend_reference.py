@@ -27,6 +27,7 @@ import numpy as np
 import pycolmap
 
 from ..camera import Camera
+from ..determinism import single_thread_mapper
 from ..pose import Pose
 from .crossmatch import AUTO_PREFIX
 from .database import MatchSettings, match_pairs
@@ -78,7 +79,8 @@ def _copy_features(src: Path, names: list[str], dst: pycolmap.Database, ids: dic
 
 def extension_ties(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str, tuple[Pose, Camera, Path]],
                    image_root: Path, work: Path, settings: ExtendSettings, match: MatchSettings | None = None,
-                   num_threads: int = 2, seed: int = 0) -> tuple[dict[str, dict[str, tuple[float, float]]], dict]:
+                   num_threads: int = 2, seed: int = 0, reproducible: bool = True
+                   ) -> tuple[dict[str, dict[str, tuple[float, float]]], dict]:
     """({tie id: {image: (x, y)}}, {photo: record}) for ``photos`` ({name: (resected pose, camera,
     its sequence's feature database)}); see the module doc. A photo the mapper does not register
     into the reference block gets no tie points here (its record says so) and keeps the ones it had."""
@@ -134,6 +136,7 @@ def extension_ties(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[
     opts.ba_refine_focal_length = opts.ba_refine_extra_params = opts.ba_refine_principal_point = False
     opts.mapper.abs_pose_refine_focal_length = opts.mapper.abs_pose_refine_extra_params = False
     opts.min_model_size = 1
+    single_thread_mapper(opts, reproducible)     # its RANSACs and BAs on one thread: gtkit.determinism
     models = pycolmap.incremental_mapping(db_path, image_root, work / "mapper", options=opts, input_path=model_in)
     records = {n: {"registered": False, "n_ties": 0} for n in names}
     if not models:

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pycolmap
 
+from ...determinism import ba_threads
 from ..crossmatch import AUTO_PREFIX
 from ..geometry import model_cameras, model_poses, triangulate_many
 from .settings import RegisterSettings
@@ -180,7 +181,7 @@ def _bundle_adjust(rec, ref_ids, settings: RegisterSettings, loss: str, covarian
     opts.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss)
     opts.ceres.loss_function_scale = settings.ba_loss_scale_px
     opts.ceres.solver_options.max_num_iterations = settings.ba_max_iterations
-    opts.ceres.solver_options.num_threads = settings.num_threads
+    opts.ceres.solver_options.num_threads = ba_threads(settings.num_threads, settings.reproducible)
     ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
     summary = ba.solve()
     cov = None

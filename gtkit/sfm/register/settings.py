@@ -61,6 +61,10 @@ class RegisterSettings:
     min_tiepoints: int = 3
     ba_max_iterations: int = 100
     num_threads: int = 2
+    # the joint BA and the extension's mapper on one thread: the same inputs give the same pseudo-GT bit
+    # for bit (gtkit.determinism; [sfm] reproducible does the same for the blocks). Cost: docs/benchmarks.md,
+    # "Reproducible poses (issue 49)"
+    reproducible: bool = True
     # automatic SIFT tie points between query and reference photos, added to the clicks
     cross: CrossMatchSettings = field(default_factory=CrossMatchSettings)
     # ... kept only where the reference model is a smooth surface (their spot moves with the sun

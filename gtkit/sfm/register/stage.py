@@ -108,7 +108,8 @@ def _automatic_ties(project: Project, ref: ReferenceBlock, placed: Placed, model
     if solo and settings.extend.enabled:
         ext, ext_rec = extension_ties(
             ref.rec, ref.db, {n: (qp[n], qc[n], P.stage(QUERIES_STAGE) / n.split("/")[1] / "database.db") for n in solo},
-            P.images, out / "extend", settings.extend, num_threads=settings.num_threads)
+            P.images, out / "extend", settings.extend, num_threads=settings.num_threads,
+            reproducible=settings.reproducible)
         for n, r in ext_rec.items():
             placed.resected[n]["extended"] = r
         auto.update(ext)
