@@ -117,6 +117,35 @@ def _sub_block(rec, ids: list[int], names: set[str] | None, max_photos: int) -> 
     return sorted(near)
 
 
+def _centre_covariance(rec, cov, ids: list[int]) -> tuple[list[int], list[Pose], np.ndarray]:
+    """The photos with a finite covariance, their poses and their centres' joint covariance (3N x 3N)."""
+    # pycolmap's pose covariance is in Ceres' quaternion tangent: its rotation rows are half the
+    # rotation vector's (Pose.from_pycolmap)
+    D = np.diag([2.0, 2.0, 2.0, 1.0, 1.0, 1.0])
+
+    def block(i, j):
+        try:
+            c = cov.get_cam_cov_from_world(i) if i == j else cov.get_cam_cross_cov_from_world(i, j)
+        except Exception:  # noqa: BLE001 - a photo pycolmap gives none: left out below
+            return None
+        c = None if c is None else np.asarray(c, np.float64)
+        return c if c is not None and c.shape == (6, 6) and np.all(np.isfinite(c)) else None
+
+    ok = [i for i in ids if block(i, i) is not None]
+    poses = [Pose.from_pycolmap(rec.images[i].cam_from_world()) for i in ok]
+    Jc = [p.center_jacobian() @ D for p in poses]
+    n = len(ok)
+    Sc = np.zeros((3 * n, 3 * n))
+    for a, i in enumerate(ok):
+        Sc[3 * a:3 * a + 3, 3 * a:3 * a + 3] = Jc[a] @ block(i, i) @ Jc[a].T
+        for b in range(a + 1, n):
+            c = block(i, ok[b])
+            c = np.zeros((3, 3)) if c is None else Jc[a] @ c @ Jc[b].T
+            Sc[3 * a:3 * a + 3, 3 * b:3 * b + 3] = c
+            Sc[3 * b:3 * b + 3, 3 * a:3 * a + 3] = c.T
+    return ok, poses, Sc
+
+
 def _variance_factor(rec, n_poses: int) -> float:
     """The block's a-posteriori variance factor: residual sum of squares over the redundancy."""
     ss, n = 0.0, 0
@@ -178,29 +207,26 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
         cov = None
     if cov is None:
         return None
+    n_all = len(ids)
+    ids, poses, Sc = _centre_covariance(rec, cov, ids)
     n = len(ids)
-    poses = [Pose.from_pycolmap(rec.images[i].cam_from_world()) for i in ids]
-    # pycolmap's pose covariance is in Ceres' quaternion tangent: its rotation rows are half the
-    # rotation vector's (Pose.from_pycolmap)
-    Jc = [p.center_jacobian() @ np.diag([2.0, 2.0, 2.0, 1.0, 1.0, 1.0]) for p in poses]
-    Sc = np.zeros((3 * n, 3 * n))
-    for a, i in enumerate(ids):
-        Sc[3 * a:3 * a + 3, 3 * a:3 * a + 3] = Jc[a] @ np.asarray(cov.get_cam_cov_from_world(i)) @ Jc[a].T
-        for b in range(a + 1, n):
-            c = Jc[a] @ np.asarray(cov.get_cam_cross_cov_from_world(i, ids[b])) @ Jc[b].T
-            Sc[3 * a:3 * a + 3, 3 * b:3 * b + 3] = c
-            Sc[3 * b:3 * b + 3, 3 * a:3 * a + 3] = c.T
+    if n < 3:
+        return None
     Sd = _similarity_datum(np.array([p.center for p in poses]), Sc)
-    vf = _variance_factor(rec, n) if n == rec.num_reg_images() else None
+    vf = _variance_factor(rec, n) if n == n_all == rec.num_reg_images() else None
     field_factor = residual_variance_factor(rec, ids, settings) if settings.residual_field else None
     scale = max(1.0, field_factor or 1.0)
     ground = {}
     for a, i in enumerate(ids):
         im = rec.images[i]
         own = _own_center_cov(rec, im, poses[a])
-        g = Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3] - (own if own is not None else 0.0)
+        g = Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3] - (own if own is not None and np.all(np.isfinite(own)) else 0.0)
+        if not np.all(np.isfinite(g)):
+            continue
         w, V = np.linalg.eigh(0.5 * (g + g.T))
         ground[im.name] = scale * (V * np.clip(w, 0.0, None)) @ V.T
+    if not ground:
+        return None
     out = ReferenceShape(ground, vf, field_factor, n, time.time() - t0)
     log.info("reference block's own uncertainty: %d photos, residual field %s, variance factor %s, median %.3f m, "
              "in %.1f s", n, _f(field_factor), _f(vf),
