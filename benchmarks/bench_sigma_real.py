@@ -97,7 +97,7 @@ def judge_truth(site: Path) -> dict:
     est = read_poses(site / "work" / "register" / "poses.txt")
     reg = json.loads((site / "work" / "register" / "registration.json").read_text())["images"]
     rows = []
-    for n in sorted(n for n in truth if n.startswith("queries/")):
+    for n in sorted(n for n in truth if n in reg):   # the photos the stage registers (the zoom rig aside)
         row = {"photo": n, "error_m": None, "sigma_m": None, "sigma_ba_m": None}
         if n in est:
             e = est[n].center - truth[n].center
