@@ -4,8 +4,8 @@ Where the run-to-run spread came from (tiny sample, seeds 0-2, two main jobs eac
 rerun from identical inputs; docs/benchmarks.md, "Reproducible poses (issue 49)"). Not the feature
 databases (keypoints, matches and two-view geometries identical run to run: every RANSAC of gtkit's
 and pycolmap's feature matching is seeded), nor the registration, localization or tracking run from
-identical inputs (identical), nor NumPy / OpenCV generators (each estimator seeds its own). Two
-things, both threads inside pycolmap:
+identical inputs (identical), nor NumPy / OpenCV generators (each estimator seeds its own). Three
+things, all inside pycolmap:
 
 - **Ceres bundle adjustments on more than one thread** sum the cost, gradient and Schur complement in
   the order the threads finish: the last bits differ run to run (tiny seed 1: the reference block
@@ -15,6 +15,10 @@ things, both threads inside pycolmap:
 - **the incremental mapper on more than one thread** (its RANSACs run in parallel, trials handed out
   to whichever thread asks): tiny seed 2's 3-photo sequence was mapped from either of two starting
   points, coin-flip, its block 0.8 m / 9.5 deg apart in its own frame (pseudo-GT 0.04 / 0.12 m).
+- **an unseeded RANSAC**: the pose-prior BA's alignment (``PosePriorBundleAdjustmentOptions``,
+  random_seed -1) draws from the calling thread's generator, whose state depends on what ran before
+  in the process: each ``gtkit sfm`` in a fresh process gave the same block, three in one process
+  three blocks. Seeded in :mod:`gtkit.sfm.prior_ba`.
 
 What this module gives the stages (their ``reproducible`` setting):
 
@@ -24,9 +28,9 @@ What this module gives the stages (their ``reproducible`` setting):
 - :func:`seed_stage`: the process-wide random generators a library may draw from without a seed of
   its own (NumPy's and Python's global ones, OpenCV's and pycolmap's of the calling thread) reset
   to a value derived from the stage's name, so that a stage gives the same result whether it runs
-  alone (``gtkit register``) or after others in one process (``gtkit run``, the main job).
-  None of gtkit's estimators draws from them today (measured: the registration alone and inside
-  the main job gave the same poses); this keeps it so.
+  alone (``gtkit register``) or after others in one process (``gtkit run``, the main job, the GUI).
+  With the RANSAC above seeded no stage was found to draw from them (the registration alone and
+  inside the main job gave the same poses); this keeps it so for what a library adds later.
 """
 from __future__ import annotations
 

@@ -62,8 +62,12 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
     cfg = pycolmap.BundleAdjustmentConfig()
     for iid in rec.reg_image_ids():
         cfg.add_image(iid)
-    summary = pycolmap.create_pose_prior_bundle_adjuster(
-        opts, pycolmap.PosePriorBundleAdjustmentOptions(), cfg, priors, rec).solve()
+    prior_opts = pycolmap.PosePriorBundleAdjustmentOptions()
+    # its alignment RANSAC seeded: pycolmap's -1 draws from the calling thread's generator, whose state
+    # depends on what ran before in the process (tiny seed 0: three reference SfMs in one process gave
+    # three blocks, each separate process the same one; issue 49, gtkit.determinism)
+    prior_opts.alignment_ransac.random_seed = 0
+    summary = pycolmap.create_pose_prior_bundle_adjuster(opts, prior_opts, cfg, priors, rec).solve()
     r1 = _residuals(rec, positions, names)
     rep = {"applied": True, "n_priors": len(names), "n_stated_accuracy": sum(1 for n in names if accuracy.get(n)),
            "sigma_h_m": round(sig_h, 4), "sigma_v_m": round(sig_v, 4),
