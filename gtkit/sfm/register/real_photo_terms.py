@@ -212,7 +212,11 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
     n = len(ids)
     if n < 3:
         return None
-    Sd = _similarity_datum(np.array([p.center for p in poses]), Sc)
+    try:
+        Sd = _similarity_datum(np.array([p.center for p in poses]), Sc)
+    except np.linalg.LinAlgError as e:   # a block whose covariance is numerically broken: no term
+        log.warning("reference block covariance unusable (%s): its own uncertainty is left out", e)
+        return None
     vf = _variance_factor(rec, n) if n == n_all == rec.num_reg_images() else None
     field_factor = residual_variance_factor(rec, ids, settings) if settings.residual_field else None
     scale = max(1.0, field_factor or 1.0)
@@ -223,7 +227,11 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
         g = Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3] - (own if own is not None and np.all(np.isfinite(own)) else 0.0)
         if not np.all(np.isfinite(g)):
             continue
-        w, V = np.linalg.eigh(0.5 * (g + g.T))
+        try:
+            w, V = np.linalg.eigh(0.5 * (g + g.T))
+        except np.linalg.LinAlgError:   # seen on the tiny sample: the photo's term is left out (logged)
+            log.warning("reference term of %s left out: its covariance does not decompose", im.name)
+            continue
         ground[im.name] = scale * (V * np.clip(w, 0.0, None)) @ V.T
     if not ground:
         return None
