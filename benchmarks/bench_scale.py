@@ -54,6 +54,7 @@ STAGES = [
     ("localize", "localize", "views"),
     ("  db features", None, "views"),
     ("track", "track", "queries"),
+    ("  rig", "rig", "queries"),              # the zoom rig's calibration (its record's cost since issue 48)
     ("main job (one process)", None, "area_km2"),   # reports/scale_run.json: pipelines.full measured whole
     ("sample + main job", None, "area_km2"),
 ]

@@ -18,7 +18,7 @@ from ..camera import Camera
 from ..errors import GtkitError
 from ..io.exif import read_photo_meta
 from ..io.poses import read_intrinsics
-from ..project import IMAGE_EXT, Project, file_fingerprint, mark_stage_done, stage_done
+from ..project import IMAGE_EXT, Project, file_fingerprint, mark_stage_done, stage_done, start_stage_clock
 from .rig import Rig, RigCalibrationSettings, ZoomSetting, calibrate_pairs
 
 log = logging.getLogger(__name__)
@@ -84,6 +84,7 @@ def run(project: Project | str | Path, settings: RigCalibrationSettings, force: 
     if not force and P.rig.is_file() and stage_done(stage_dir, settings, inputs):
         log.info("rig: up to date (%s)", P.rig)
         return Rig.load(P.rig)
+    start_stage_clock(stage_dir)   # the record's cost (the check above starts it only without a record)
     cams = read_intrinsics(P.cameras) if P.cameras.is_file() else {}
     wide_cams, zoom_group, groups = {}, {}, {}
     init: list[ZoomSetting] = []
