@@ -198,6 +198,7 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
     opts.refine_principal_point = "principal point" in parts
     opts.refine_extra_params = "distortion" in parts
     opts.ceres.solver_options.max_num_iterations = 1
+    opts.ceres.solver_options.num_threads = 1    # the same covariance run to run (threads sum in any order)
     ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
     ba.solve()
     try:
