@@ -17,7 +17,9 @@ class FeatureSettings:
     # a query at (1m,1deg) on seeds 1 and 6 (seed 6's seq3/0008, vegetation: 35 inliers at 3000, 33 at
     # 2000, not localized at 1500).
     max_keypoints_db: int = 2000
-    max_side: int = 1024               # query images are resized to this longer side for features
+    # query images are resized to this longer side for features; at the fullsize sample's 12 MP wide
+    # photos 1024 px localizes 100 %, median 0.022 m, at small's CPU (the database views are 640 px)
+    max_side: int = 1024
     contrast_threshold: float = 0.02
 
 

@@ -21,7 +21,10 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class FeatureSettings:
-    max_image_size: int = 1600      # px; images are downscaled for SIFT, keypoints are in full-size pixels
+    # px; images are downscaled for SIFT, keypoints are in full-size pixels. Measured on the fullsize
+    # sample (24 MP reference, loaded): 1600 px 1.65 CPU s / 0.48 GB a photo (pseudo-GT 0.029 m vs
+    # small's 0.043 m); 3200 px 5.2 s / 1.17 GB; full 6000 px 10.5 s / 3.77 GB (docs/benchmarks.md)
+    max_image_size: int = 1600
     max_num_features: int = 3000    # SIFT keypoints per image (CPU time grows with it)
     # First octave of SIFT's pyramid: 0 starts at the image's own size; -1 (COLMAP's default) at twice
     # its size, which costs 3.7x the CPU and, as COLMAP keeps the largest-scale keypoints beyond
