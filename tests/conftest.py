@@ -78,6 +78,21 @@ def finished_demo(tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="session")
+def yardstick(tmp_path_factory):
+    """The held-out protocol's yardstick on the shared Brighton photos: all 18 SfM'd as one
+    reference block (../shared/tools/heldout_eval.py). Read-only by convention."""
+    from gtkit.cli import main as gtkit
+
+    base = tmp_path_factory.mktemp("brighton_all")
+    (base / "all").mkdir()
+    for p in sorted((BRIGHTON / "images").glob("*.JPG")):
+        (base / "all" / p.name).symlink_to(p)
+    assert gtkit(["init", str(base / "ALL"), "--reference", str(base / "all")]) == 0
+    assert gtkit(["sfm", str(base / "ALL"), "--block", "reference"]) == 0
+    return base / "ALL"
+
+
 def stage_settings(stage: str, project, cli: dict | None = None):
     """A stage's settings as every entry point resolves them (gtkit.stages.settings_for: flags >
     project.toml > defaults); ``project`` a Project or its folder."""

@@ -56,17 +56,6 @@ def _judge(all_project: Path, held: Path, poses: str) -> dict[str, float]:
     return {m.group(1): float(m.group(2)) for m in re.finditer(r"^#\s+(\S+\.JPG) (\S+) m", r.stderr, re.M)}
 
 
-@pytest.fixture(scope="module")
-def yardstick(tmp_path_factory):
-    base = tmp_path_factory.mktemp("brighton_all")
-    (base / "all").mkdir()
-    for p in sorted((BRIGHTON / "images").glob("*.JPG")):
-        (base / "all" / p.name).symlink_to(p)
-    assert gtkit(["init", str(base / "ALL"), "--reference", str(base / "all")]) == 0
-    assert gtkit(["sfm", str(base / "ALL"), "--block", "reference"]) == 0
-    return base / "ALL"
-
-
 def _held_project(base: Path, copy: bool) -> Path:
     ref, seq = _split(base)
     assert gtkit(["init", str(base / "HELD"), "--reference", str(ref), "--queries", str(seq)]

@@ -26,17 +26,6 @@ pytestmark = [pytest.mark.skipif(not (BRIGHTON / "images").is_dir(), reason="sha
 HELD = ("DJI_0018.JPG", "DJI_0023.JPG", "DJI_0028.JPG", "DJI_0033.JPG")   # every 5th from the 1st
 
 
-@pytest.fixture(scope="module")
-def yardstick(tmp_path_factory):
-    base = tmp_path_factory.mktemp("brighton_all")
-    (base / "all").mkdir()
-    for p in sorted((BRIGHTON / "images").glob("*.JPG")):
-        (base / "all" / p.name).symlink_to(p)
-    assert gtkit(["init", str(base / "ALL"), "--reference", str(base / "all")]) == 0
-    assert gtkit(["sfm", str(base / "ALL"), "--block", "reference"]) == 0
-    return base / "ALL"
-
-
 def _held(base: Path, variant_seed: int | None) -> Path:
     ref, seq = base / "ref", base / "q" / "seq"
     ref.mkdir(parents=True)
