@@ -21,7 +21,7 @@ from pathlib import Path
 
 from . import __version__, commands
 from .errors import GtkitError
-from .logs import quiet_terminal, write_traceback
+from .logs import exception_words, quiet_terminal, write_traceback
 from .write_errors import machine_cause
 
 
@@ -96,8 +96,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _unexpected(args, e: BaseException) -> int:
     where = write_traceback(_error_file(args), f"gtkit {args.command}")
-    first = str(e).splitlines()[0] if str(e) else ""
-    print(f"gtkit: error: {args.command} failed unexpectedly ({type(e).__name__}{': ' + first if first else ''}); "
+    print(f"gtkit: error: {args.command} failed unexpectedly ({exception_words(e)}); "
           f"the traceback is in {where} (please report it)", file=sys.stderr)
     return 2
 

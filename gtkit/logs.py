@@ -131,6 +131,13 @@ def quiet_terminal(verbose: bool = False):
 
 
 
+def exception_words(e: BaseException) -> str:
+    """An exception in a few words for a one-line message: ``TypeError: its first line`` (or the
+    type alone where it says nothing)."""
+    first = str(e).splitlines()[0] if str(e) else ""
+    return f"{type(e).__name__}: {first}" if first else type(e).__name__
+
+
 def write_traceback(path: str | Path, what: str) -> Path:
     """Write the exception being handled (its traceback) to ``path`` (a fresh file, folders made) with
     a first line saying ``what`` failed; returns the path it went to (a temporary file where ``path``

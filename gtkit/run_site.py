@@ -26,7 +26,7 @@ import numpy as np
 
 from .errors import GtkitError
 from .io.atomic import write_json
-from .logs import write_traceback
+from .logs import exception_words, write_traceback
 from .write_errors import machine_cause
 from .project import Project
 from .project_lock import project_lock
@@ -91,7 +91,7 @@ def _unexpected(project: Project, name: str, e: Exception) -> GtkitError:
         failed.why = cause
         return failed
     where = write_traceback(project.paths.work / "errors" / f"{name}.txt", f"stage {name}")
-    why = f"unexpected {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}".rstrip(": ")
+    why = f"unexpected {exception_words(e)}"
     failed = GtkitError(f"stage {name} failed ({why}); the traceback is in {where} (please report it)")
     failed.traceback_file, failed.why = where, why
     return failed

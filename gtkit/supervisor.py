@@ -62,17 +62,16 @@ def death_line(sig: int, command: str, root: Path | None, since: float) -> str:
         name = f"signal {sig}"
     parts = [f"gtkit: error: {command} stopped: the process was ended by {name}"]
     log = _newest_log(root, since) if root is not None else None
+    cause = _cause(log) if log is not None else None   # read once: the log may be long
     if log is not None:
-        stage = log.parent.relative_to(root / "work").as_posix()
-        parts[0] += f" in stage {stage}"
-        cause = _cause(log)
-        if cause:
-            parts.append(cause)
+        parts[0] += f" in stage {log.parent.relative_to(root / 'work').as_posix()}"
+    if cause:
+        parts.append(cause)
     if root is not None:
         free = shutil.disk_usage(root).free
         if free < LOW_DISK_BYTES:
             parts.append(f"the disk holding {root} is full ({free / 2**20:.0f} MB free): free space and run it again")
-        elif log is not None and "disk I/O error" in (_cause(log) or ""):
+        elif "disk I/O error" in (cause or ""):
             parts.append("a file could not be written: a full disk, a file-size limit (ulimit -f) or a "
                          "read-only folder; fix it and run the command again (finished stages are kept)")
     if name == "SIGKILL":

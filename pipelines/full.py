@@ -133,7 +133,7 @@ if __name__ == "__main__":
     if not os.environ.get(SUPERVISED) and not os.environ.get("GTKIT_NO_CHILD"):   # as the gtkit command
         sys.exit(run_supervised([sys.executable, "-m", "pipelines.full", *sys.argv[1:]], "python -m pipelines.full",
                                 sys.argv[1:]))
-    from gtkit.logs import quiet_terminal, write_traceback
+    from gtkit.logs import exception_words, quiet_terminal, write_traceback
     from gtkit.write_errors import machine_cause
 
     ap = argparse.ArgumentParser(prog="python -m pipelines.full", description=__doc__,
@@ -170,7 +170,7 @@ if __name__ == "__main__":
         cause = machine_cause(e)
         if cause is None:
             where = write_traceback(Path(a.project) / "work" / "errors" / "main_job.txt", "python -m pipelines.full")
-            cause = (f"failed unexpectedly ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
+            cause = (f"failed unexpectedly ({exception_words(e)}); "
                      f"the traceback is in {where} (please report it)")
         print(f"gtkit: error: the main job: {cause}", file=sys.stderr)
         sys.exit(2)
