@@ -78,10 +78,6 @@ class Paths:
     def intrinsics(self, stage: str) -> Path:
         return self.stage(stage) / INTRINSICS
 
-    def record(self, stage: str) -> Path:
-        """The stage's record (settings, inputs, summary: :func:`read_stage_record`)."""
-        return self.stage(stage) / STAGE_RECORD
-
     reference_poses = property(lambda s: s.poses("sfm_reference"))     # the reference block's SfM
     reference_intrinsics = property(lambda s: s.intrinsics("sfm_reference"))
     pseudo_gt_poses = property(lambda s: s.poses("register"))          # gtkit register's query poses
