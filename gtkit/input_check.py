@@ -17,6 +17,7 @@ import os
 from pathlib import Path
 
 from .errors import GtkitError
+from .io.exif import jpeg_truncation
 from .project import IMAGE_EXT
 
 SHOWN = 20              # problems named in the one-line message; past that, all are in a file it names
@@ -80,8 +81,8 @@ def photo_problem(path: str | Path) -> str | None:
         if head[4:8] == b"ftyp":
             other = "an ISO media file (HEIC, MP4 ...)"
         return f"not an image gtkit reads: {other}" if other else f"not an image ({size} bytes of unknown data)"
-    if kind == "JPEG" and not tail.rstrip(b"\0").endswith(b"\xff\xd9"):
-        return f"truncated JPEG (no end-of-image marker after {size} bytes: a copy or download cut short?)"
+    if kind == "JPEG" and (cut := jpeg_truncation(tail, size)):
+        return cut
     try:
         from PIL import Image
 

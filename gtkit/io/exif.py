@@ -91,6 +91,15 @@ def read_xmp_dji(raw: bytes) -> dict[str, float]:
     return out
 
 
+def jpeg_truncation(tail: bytes, size: int) -> str | None:
+    """Why a JPEG whose last bytes are ``tail`` (of ``size`` bytes in all) is cut short, or None when
+    it ends with the end-of-image marker (zero padding after it allowed). The one rule: the photo
+    pre-check (:mod:`gtkit.input_check`) and the metadata reader both use it."""
+    if tail.rstrip(b"\0").endswith(b"\xff\xd9"):
+        return None
+    return f"truncated JPEG (no end-of-image marker after {size} bytes: a copy or download cut short?)"
+
+
 def read_photo_meta(path: str | Path, require: tuple[str, ...] = ()) -> PhotoMeta:
     """Read size, EXIF GPS and DJI XMP angles of a photo.
 
@@ -109,9 +118,10 @@ def read_photo_meta(path: str | Path, require: tuple[str, ...] = ()) -> PhotoMet
             sub = exif.get_ifd(0x8769)
     except (UnidentifiedImageError, OSError, SyntaxError) as e:
         raise GtkitError(f"not a readable image ({e})", path) from None
-    raw = path.read_bytes()
-    if path.suffix.lower() in (".jpg", ".jpeg") and not raw.rstrip(b"\0").endswith(b"\xff\xd9"):
-        raise GtkitError("corrupt or truncated JPEG (no end-of-image marker)", path)
+    raw = path.read_bytes()   # the XMP packet may sit anywhere in the header segments
+    cut = jpeg_truncation(raw[-64:], len(raw)) if path.suffix.lower() in (".jpg", ".jpeg") else None
+    if cut:
+        raise GtkitError(cut, path)
     m = PhotoMeta(width=w, height=h, make=_s(exif.get(0x010F)), model=_s(exif.get(0x0110)))
     m.timestamp = _s(sub.get(0x9003) or exif.get(0x0132))
     if sub.get(0x920A):
