@@ -25,19 +25,12 @@ What this module gives the stages (their ``reproducible`` setting):
 - :func:`ba_threads`: the Ceres threads of a BA, 1 where ``reproducible``;
 - :func:`single_thread_mapper`: pycolmap's incremental mapper on one thread (its BAs and RANSACs;
   feature extraction and matching have their own options and keep theirs);
-- :func:`seed_stage`: the process-wide random generators a library may draw from without a seed of
-  its own (NumPy's and Python's global ones, OpenCV's and pycolmap's of the calling thread) reset
-  to a value derived from the stage's name, so that a stage gives the same result whether it runs
-  alone (``gtkit register``) or after others in one process (``gtkit run``, the main job, the GUI).
-  With the RANSAC above seeded no stage was found to draw from them (the registration alone and
-  inside the main job gave the same poses); this keeps it so for what a library adds later.
+The process-wide generators (NumPy's and Python's global ones, OpenCV's and pycolmap's per thread) are
+not reset per stage: no stage draws from them (the registration alone and inside the main job gave
+the same poses; the main job twice gives byte-identical poses, tests/test_reproducible_poses.py). A
+library that starts to draw from them would show there as poses that differ between the two runs.
 """
 from __future__ import annotations
-
-import random
-import zlib
-
-import numpy as np
 
 ONE_THREAD_RESIDUALS = 2 ** 31 - 1   # pycolmap's "multi-threaded from this many residuals" made unreachable
 
@@ -55,22 +48,3 @@ def single_thread_mapper(options, reproducible: bool):
         options.mapper.num_threads = 1
         options.ba_min_num_residuals_for_cpu_multi_threading = ONE_THREAD_RESIDUALS
     return options
-
-
-def stage_seed(name: str) -> int:
-    """A stage's seed: fixed, and different per stage (CRC-32 of its name)."""
-    return zlib.crc32(name.encode("utf-8")) & 0x7FFFFFFF
-
-
-def seed_stage(name: str) -> int:
-    """Reset the process-wide random generators to the stage's seed (see the module doc); returns it.
-    pycolmap's and OpenCV's generators are per thread: this seeds the calling thread's."""
-    import cv2
-    import pycolmap
-
-    seed = stage_seed(name)
-    random.seed(seed)
-    np.random.seed(seed)
-    cv2.setRNGSeed(seed)
-    pycolmap.set_random_seed(seed)
-    return seed

@@ -9,7 +9,6 @@ with the RANSAC unseeded); GTKIT_SLOW=1 adds the whole main job twice, each in i
 database views and tracks too, about 3 minutes idle).
 """
 import os
-import random
 import shutil
 import subprocess
 import sys
@@ -21,23 +20,6 @@ import pytest
 from conftest import stage_settings
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def test_seed_stage_resets_the_global_generators_per_stage():
-    import cv2
-
-    from gtkit.determinism import seed_stage
-
-    def draws(stage):
-        seed_stage(stage)
-        u = np.zeros(4)
-        cv2.randu(u, 0.0, 1.0)
-        return random.random(), float(np.random.rand()), tuple(u.ravel())
-
-    first = draws("register")
-    random.random(), np.random.rand()          # anything drawn in between (another stage) does not count
-    assert draws("register") == first
-    assert draws("localize") != first
 
 
 def test_ba_threads_and_the_mapper_options():
