@@ -63,6 +63,7 @@ class Holder:
     pid: int
     host: str
     since: float                  # unix time
+    flock: bool = True            # it holds the flock (False: a file system without flock; the record decides)
 
     def since_text(self) -> str:
         t = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(self.since))
@@ -92,6 +93,29 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
+def flock_held(lock: Path, table: str = "/proc/locks") -> bool | None:
+    """Whether any process holds a flock on ``lock``, read from the kernel's lock table (Linux's
+    ``/proc/locks``: ``1: FLOCK ADVISORY WRITE pid maj:min:inode 0 EOF``), taking nothing;
+    None where that cannot be told (no such table, no such file)."""
+    try:
+        st = os.stat(lock)
+        rows = Path(table).read_text().splitlines()
+    except OSError:
+        return None
+    want = (os.major(st.st_dev), os.minor(st.st_dev), st.st_ino)
+    for row in rows:
+        f = row.split()
+        if len(f) < 6 or f[1] != "FLOCK":     # a waiter's row reads "N: -> FLOCK ...": not a holder
+            continue
+        try:
+            maj, mnr, ino = f[5].split(":")
+            if (int(maj, 16), int(mnr, 16), int(ino)) == want:
+                return True
+        except ValueError:
+            continue
+    return False
+
+
 def lock_paths(root: str | Path) -> tuple[Path, Path]:
     work = Path(root) / "work"
     return work / LOCK_FILE, work / HOLDER_FILE
@@ -118,7 +142,7 @@ def read_holder(root: str | Path) -> Holder | None:
     _, rec = lock_paths(root)
     try:
         d = json.loads(rec.read_text())
-        return Holder(str(d["command"]), int(d["pid"]), str(d["host"]), float(d["since"]))
+        return Holder(str(d["command"]), int(d["pid"]), str(d["host"]), float(d["since"]), bool(d.get("flock", True)))
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
@@ -220,7 +244,7 @@ def acquire(root: str | Path, command: str | None = None, note=None) -> bool:
         if old is not None and not (fd is not None or old.alive() is False):
             if old.pid != os.getpid():   # no flock here and the holder may live: the record decides
                 raise _refusal(root, old)
-        me = Holder(command or this_command(), os.getpid(), socket.gethostname(), time.time())
+        me = Holder(command or this_command(), os.getpid(), socket.gethostname(), time.time(), fd is not None)
         try:
             _write_holder(root, me)
         except OSError as err:
@@ -290,8 +314,9 @@ def project_lock(root: str | Path, command: str | None = None, note=None):
 
 def holder(root: str | Path) -> Holder | None:
     """The other process writing this project now, or None (free, or held by this process).
-    Takes nothing: its record is read and its process looked up; only a record written on another
-    host is checked against the flock (tested and dropped at once)."""
+    Takes nothing: its record is read, its process looked up and, on Linux, the kernel's lock table
+    read (a killed holder's pid reused by another process is not a holder); only a record written on
+    another host is checked against the flock (tested and dropped at once)."""
     root = Path(root)
     if held_here(root):
         return None
@@ -300,6 +325,10 @@ def holder(root: str | Path) -> Holder | None:
         return None
     alive = h.alive()
     if alive is not None:
+        # A live pid may be a killed holder's, reused by another process: the kernel's lock table
+        # says whether anyone holds the flock, without taking it (None: cannot tell; the pid decides)
+        if alive and h.flock and flock_held(lock_paths(root)[0]) is False:
+            return None
         return h if alive else None
     try:
         fd, got = _try_flock(lock_paths(root)[0])

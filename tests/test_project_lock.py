@@ -104,6 +104,43 @@ def test_lock_of_a_killed_process_is_taken_over_with_one_line(site):
     assert "writer    none" in _run(GTKIT + ["info", str(site)]).stdout
 
 
+def test_a_killed_holders_pid_reused_by_another_process_is_not_a_holder(site, tmp_path):
+    """The annotator's banner and ``gtkit info`` ask :func:`holder`: a killed writer's record names a
+    pid that the system may hand to an unrelated process; the kernel's lock table decides then."""
+    from gtkit.project_lock import flock_held, lock_paths
+
+    lock = lock_paths(site)[0]
+    h = _holder(site, f"gtkit run {site}")
+    assert holder(site).pid == h.pid and flock_held(lock) is True
+    os.kill(h.pid, signal.SIGKILL)
+    h.wait()
+    assert flock_held(lock) is False
+    other = subprocess.Popen(["sleep", "60"])           # stands for the process that got the pid
+    try:
+        rec = site / "work" / HOLDER_FILE
+        d = json.loads(rec.read_text())
+        rec.write_text(json.dumps({**d, "pid": other.pid}))
+        assert read_holder(site).alive() is True        # the recorded pid lives ...
+        assert holder(site) is None                     # ... but holds nothing: not a writer
+        from gui.write_guard import WriteGuard
+
+        assert WriteGuard(site).blocked() is None       # the annotator edits and saves
+        # a record of a file system without flock: the pid alone decides, as before
+        rec.write_text(json.dumps({**d, "pid": other.pid, "flock": False}))
+        assert holder(site).pid == other.pid
+    finally:
+        other.kill()
+        other.wait()
+    table = tmp_path / "locks"                          # the table's rows as Linux writes them
+    st = os.stat(lock)
+    dev = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    table.write_text(f"1: POSIX  ADVISORY  WRITE 7 {dev} 0 EOF\n2: -> FLOCK  ADVISORY  WRITE 8 {dev} 0 EOF\n")
+    assert flock_held(lock, str(table)) is False        # a POSIX lock and a waiter are not our holder
+    table.write_text(f"3: FLOCK  ADVISORY  WRITE 9 {dev} 0 EOF\n")
+    assert flock_held(lock, str(table)) is True
+    assert flock_held(lock, str(tmp_path / "none")) is None
+
+
 def test_reentrant_in_one_process_and_released_after(site):
     """A stage run inside `gtkit run` (the main job inside its own lock, gtkit run's loop inside the
     CLI's) takes the lock again without waiting on itself; the last release frees the project."""
