@@ -151,6 +151,13 @@ def test_stages_name_every_bad_photo_before_reading_any(photos, tmp_path):
     assert r.returncode == 2 and len(err.splitlines()) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "3 bad photos" in err and "queries/seq1/0001_W.jpg: not an image: a text file" in err, err
     assert not (dst / "work" / "sfm_reference").exists()           # no stage started
+    # each command that reads photos checks them first, alone too (not only inside `gtkit run`)
+    for cmd, n in ((("render-db", dst), 1), (("overlay", dst), 3), (("model", "build", dst), 2),
+                   (("track", "calibrate", dst), 1)):
+        r = _gtkit(*cmd)
+        err = r.stderr.strip()
+        assert r.returncode == 2 and len(err.splitlines()) == 1 and "Traceback" not in r.stderr, (cmd, r.stderr)
+        assert f"{n} bad photo" in err and ("queries/seq1/0001_W.jpg" in err or n == 2), (cmd, err)
 
 
 def test_many_bad_photos_counted_named_and_all_in_a_file(tmp_path):

@@ -49,10 +49,11 @@ def register(sub):
 def run_build(args):
     from ..model.build import run
     from ..project import Project
-    from ..stages import settings_for
+    from ..stages import STAGE, settings_for
     from .render_db import executor_settings
 
     project = Project.load(args.project)
+    STAGE["model"].check_inputs(project)      # every bad reference photo named at once
     s = settings_for("model", project, {
         "max_image_size": args.max_image_size, "neighbours": args.neighbours, "max_triangles": args.max_triangles,
         "poisson_depth": args.poisson_depth, "voxel_m": args.voxel, "depth_method": args.depth_method})

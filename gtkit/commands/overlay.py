@@ -20,10 +20,13 @@ def register(sub):
 def run(args):
     from ..project import Project
     from ..render.overlay import write_overlays
-    from ..stages import settings_for
+    from ..stages import STAGE, settings_for
 
     modes = tuple(m for m in args.modes.split(",") if m) if args.modes is not None else None
-    st = settings_for("overlays", Project.load(args.project), {"max_side": args.max_side, "modes": modes})
+    project = Project.load(args.project)
+    if not (args.images or args.poses):      # the project's own photos: every bad one named at once
+        STAGE["overlays"].check_inputs(project)
+    st = settings_for("overlays", project, {"max_side": args.max_side, "modes": modes})
 
     def progress(k, n, name, a):
         print(f"[{k}/{n}] {name}: misalignment {a.misalignment_px:.2f} px, edge distance {a.edge_distance_px:.2f} px",

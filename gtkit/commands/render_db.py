@@ -71,7 +71,7 @@ def run(args):
     from ..errors import GtkitError
     from ..localize import database
     from ..project import Project
-    from ..stages import settings_for
+    from ..stages import STAGE, settings_for
 
     w = h = None
     if args.size is not None:
@@ -80,6 +80,7 @@ def run(args):
         except ValueError:
             raise GtkitError(f"--size must be WxH, got {args.size!r}") from None
     project = Project.load(args.project)
+    STAGE["render_db"].check_inputs(project)      # every bad query photo named at once
     s = settings_for("render_db", project, {
         "heights": args.heights, "intervals": args.intervals, "paper_pitches": args.pitches,
         "yaw_step": args.yaw_step, "anchor": args.anchor, "width": w, "height": h, "hfov_deg": args.hfov,

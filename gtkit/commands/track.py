@@ -52,10 +52,11 @@ def run(args):
         action, root = "run", args.first
     if action == "calibrate":
         from ..project import Project
-        from ..stages import settings_for
+        from ..stages import STAGE, settings_for
         from ..track.calibrate import run as calibrate
 
         project = Project.load(root)
+        STAGE["track"].check_inputs(project)      # every bad query photo named at once
         rig = calibrate(project, settings_for("track", project)["rig"], force=args.force)
         print(json.dumps({k: v for k, v in rig.info.items() if k != "per_pair"}, indent=2))
         return 0
