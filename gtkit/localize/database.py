@@ -416,13 +416,13 @@ def resolve_grid(project: Project, s: RenderDbSettings, renderer, extent, ground
                            "no query GPS altitude"),
                "paper_pitches": ("off_nadir_deg", lambda v: pitch_levels(list(v)), "photos' gimbal pitch",
                                  "no gimbal angles")}
-    for field, (key, make, what, missing) in follows.items():
-        if getattr(s, field) is not None:
+    for name, (key, make, what, missing) in follows.items():
+        if getattr(s, name) is not None:
             continue
         if fl[key]:
-            ch[field], src[field] = make(fl[key].values()), f"queries ({len(fl[key])} {what})"
+            ch[name], src[name] = make(fl[key].values()), f"queries ({len(fl[key])} {what})"
         else:
-            ch[field], src[field] = PAPER_GRID[field], f"default ({missing})"
+            ch[name], src[name] = PAPER_GRID[name], f"default ({missing})"
     heights = ch.get("heights", s.heights)
     if s.intervals is None:
         hfov = ch.get("hfov_deg", s.hfov_deg)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import atomic_path, write_bytes, write_json
+from ..io.atomic import atomic_path, write_json
 from .views import View
 
 _OFF = 1 << 20          # voxel index offset (keys need non-negative indices; +-262 km at 0.25 m)

@@ -246,7 +246,7 @@ def _from_load_model(path: Path, frame):
     from ..io.mesh import load_model
 
     mesh = load_model(path, frame)
-    V, F, C, UV, FUV, parts, textures, materials, off = [], [], [], [], [], [], {}, {}, 0
+    V, F, C, UV, parts, textures, materials, off = [], [], [], [], [], {}, {}, 0
     for k, p in enumerate(mesh.parts):
         parts.append((sum(len(x) for x in F), f"part{k}"))
         V.append(p.vertices)
