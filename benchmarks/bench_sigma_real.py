@@ -109,6 +109,11 @@ def judge_truth(site: Path) -> dict:
             "rows": rows}
 
 
+def _ba_factor(terms: dict) -> float:
+    """What the BA's variance was scaled by: the features' pixel squared or the residual field, the larger."""
+    return max((terms.get("feature_px") or 1.0) ** 2, terms.get("residual_factor") or 1.0)
+
+
 def sigma_before(row: dict) -> float | None:
     """The sigma the stage stated before issue 48: the BA's, plus the systematic swing where it applied."""
     t = row.get("terms") or {}
@@ -159,7 +164,7 @@ def main(argv=None) -> int:
             t = r.get("terms") or {}
             print(f"  {r['photo']:28s} error {r['error_m']:.3f} m  sigma {sig:.3f} m (before "
                   f"{sigma_before(r) or float('nan'):.3f}; BA {t.get('ba_m') or float('nan'):.3f} x factor "
-                  f"{t.get('residual_factor') or float('nan'):.2f}, reference {t.get('reference_m') or 0.0:.3f}, swing "
+                  f"{_ba_factor(t):.2f}, reference {t.get('reference_m') or 0.0:.3f}, swing "
                   f"{t.get('swing_m') or 0.0:.3f})  limit {lim:.3f} m  {'held' if r['error_m'] <= lim else 'OUT'}"
                   f"  cam-axis error {np.round(r['error_cam_m'], 3).tolist()}")
         f = (lambda v: "-" if v is None else f"{v:.3f}")

@@ -7,8 +7,8 @@ import pycolmap
 import pytest
 
 from gtkit.pose import Pose, skew
-from gtkit.sfm.register.real_photo_terms import (SigmaSettings, _similarity_datum, reference_shape,
-                                                 residual_variance_factor)
+from gtkit.sfm.register.real_photo_terms import (SigmaSettings, _similarity_datum, feature_noise_px,
+                                                 feature_side_of, reference_shape, residual_variance_factor)
 from gtkit.sfm.register.uncertainty import _with_reference
 
 
@@ -108,3 +108,24 @@ def test_a_large_reference_block_is_cut_to_the_photos_the_queries_tie_to_and_the
     assert 3 <= len(near) < 9
     cut = reference_shape(d, {"reference/0.jpg"}, SigmaSettings(max_photos=3))
     assert cut is not None and set(cut.ground) == near and cut.variance_factor is None   # (a part: no sigma0)
+
+
+def test_one_pixel_of_the_features_in_the_photo_s_pixels(tmp_path):
+    """Features found on the photo shrunk to ``[sfm] features.max_image_size``: their 1 px is long side /
+    that size in the photo's pixels (the full-size sample: the reference block's covariance at 1 photo
+    px put its cameras 0.004 m from where they are, they were 0.014 m off the truth)."""
+    import json
+
+    cam = pycolmap.Camera(model="PINHOLE", width=6000, height=4000, params=[5000.0, 5000.0, 3000.0, 2000.0])
+    assert feature_noise_px(cam, 1600) == pytest.approx(3.75)
+    assert feature_noise_px(cam, 8000) == 1.0 and feature_noise_px(cam, None) == 1.0
+    (tmp_path / "stage.json").write_text(json.dumps({"settings": {"features": {"max_image_size": 1600}}}))
+    assert feature_side_of(tmp_path) == 1600 and feature_side_of(tmp_path / "none") is None
+    # the reference block's term: its 1-px covariance times (1000 / 500)^2 where the residuals are quieter
+    d = tmp_path / "model"
+    d.mkdir()
+    _block(lambda uv, rng: rng.normal(0, 0.3, uv.shape)).write(str(d))
+    one, shrunk = reference_shape(d), reference_shape(d, feature_side=500)
+    assert one.field_factor < 1.0
+    for n, g in one.ground.items():
+        assert np.allclose(shrunk.ground[n], 4.0 * g)

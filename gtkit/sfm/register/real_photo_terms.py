@@ -17,12 +17,20 @@ project's own blocks (never on truth):
   0.020 m RMS a camera) would put their misfit on the photos both hold at 0.034 / 0.030 m, it
   measures 0.060 / 0.063 m; each scaled by its own residual field (1.98 / 3.25 and 4.03) they put it
   at 0.056 / 0.057 m.
-- **Feature noise and correlated residuals.** The BA takes every observation for an independent
-  1-px measurement. :func:`residual_variance_factor` measures, over the query photos of a sequence,
+- **Feature noise at the size the features were found.** The BA takes every observation for an
+  independent 1-px measurement, in the photo's own pixels. The SfM finds its features on the photo
+  shrunk to ``[sfm] features.max_image_size`` (1600 px): on a larger photo a feature's 1 px there is
+  ``long side / 1600`` px of the photo (24 MP reference: 3.75, 12 MP wide: 2.5).
+  :func:`feature_noise_px` is that factor (1 for a photo not shrunk); both covariances are scaled by
+  its square (measured on the full-size sample, seeds 0 and 1: the reference block's covariance at 1
+  photo px put its cameras 0.004 m from where they are, they were 0.014 m off the truth after the best
+  similarity; the query photos' stated sigma 0.010 m against errors of 0.029 m; at 1 px of the
+  1600-px features both agree with the truth as the 1-MP sample's do, where nothing is shrunk).
+- **Feature noise and correlated residuals.**  :func:`residual_variance_factor` measures, over the query photos of a sequence,
   the variance of the residuals' mean in cells of a 4 x 4 image grid, ``n |mean|^2`` per axis (px^2):
   1 px independent noise gives 1, smaller noise less, residuals that move together in a cell (lens
   or rolling-shutter model error, automatic ties of one texture) more. The BA's covariance is scaled
-  by it where it exceeds 1. It is measured on fitted residuals, which the points and poses have
+  by it where it exceeds the features' own noise (``feature_noise_px`` squared). It is measured on fitted residuals, which the points and poses have
   partly absorbed (independent 1-px noise on tracks of 2-4 photos reads about 0.6), so it errs
   towards the smaller sigma. Sample sites' sequences: 0.13-0.30 (residuals 0.41 px and nearly
   independent, so unchanged); Brighton: 2.3-3.3 (0.5 px residuals, cell means 10-13x what
@@ -49,6 +57,7 @@ class SigmaSettings:
     """``[register.sigma]``: the terms added to the joint BA's covariance (:mod:`.real_photo_terms`)."""
     reference_shape: bool = True     # the reference block's own uncertainty where the photo sees it
     residual_field: bool = True      # the BA's covariance scaled by the measured cell-mean residual variance
+    feature_size: bool = True        # covariances at 1 px of the shrunk image the features were found in
     grid: int = 4                    # cells per image side for the residual field
     min_per_cell: int = 5            # observations a cell needs to count
     # a reference block larger than this: its covariance on the photos the queries tie to and those
@@ -63,6 +72,24 @@ class ReferenceShape:
     field_factor: float | None = None      # its residual field (:func:`residual_variance_factor`), applied where > 1
     n_photos: int = 0
     seconds: float = 0.0
+
+
+def feature_noise_px(cam, feature_side: int | None) -> float:
+    """One pixel of the features, in the photo's own pixels: ``long side / feature_side`` where the
+    SfM shrank the photo to ``feature_side`` px to find them, 1 where it did not (or unknown)."""
+    if not feature_side:
+        return 1.0
+    return max(1.0, max(int(cam.width), int(cam.height)) / float(feature_side))
+
+
+def feature_side_of(stage_dir: Path) -> int | None:
+    """The long side an SfM block found its features at (its record's ``features.max_image_size``),
+    None where it has no record saying so."""
+    from ...project import read_stage_record
+
+    r = read_stage_record(stage_dir)
+    v = ((r.settings.get("features") or {}).get("max_image_size")) if r is not None else None
+    return int(v) if isinstance(v, (int, float)) and v > 0 else None
 
 
 def _similarity_datum(C: np.ndarray, Sc: np.ndarray) -> np.ndarray:
@@ -171,13 +198,14 @@ def refined_intrinsics(model_dir: Path) -> dict[int, list[str]]:
     return {int(c): list(v.get("refined", [])) for c, v in intr.items()}
 
 
-def reference_shape(ref_model: Path, names: set[str] | None = None, settings: SigmaSettings = SigmaSettings()
-                    ) -> ReferenceShape | None:
+def reference_shape(ref_model: Path, names: set[str] | None = None, settings: SigmaSettings = SigmaSettings(),
+                    feature_side: int | None = None) -> ReferenceShape | None:
     """The reference block's own uncertainty, per photo (the part its ground points carry, in the
     block's similarity datum; see the module's docstring), from the SfM model in ``ref_model`` with
     the intrinsics free that the SfM refined (``block.json``: their uncertainty is the lens model's).
     ``names``: the photos the queries tie to (a block over ``settings.max_photos`` is cut to them and
-    their neighbours). None where the block's covariance cannot be computed."""
+    their neighbours); ``feature_side``: the long side its features were found at (:func:`feature_noise_px`).
+    None where the block's covariance cannot be computed."""
     t0 = time.time()
     rec = pycolmap.Reconstruction(str(ref_model))
     ids = _sub_block(rec, sorted(rec.reg_image_ids()), names, settings.max_photos)
@@ -220,10 +248,10 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
         return None
     vf = _variance_factor(rec, n) if n == n_all == rec.num_reg_images() else None
     field_factor = residual_variance_factor(rec, ids, settings) if settings.residual_field else None
-    scale = max(1.0, field_factor or 1.0)
     ground = {}
     for a, i in enumerate(ids):
         im = rec.images[i]
+        scale = max(feature_noise_px(rec.cameras[im.camera_id], feature_side) ** 2, field_factor or 1.0)
         own = _own_center_cov(rec, im, poses[a])
         g = Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3] - (own if own is not None and np.all(np.isfinite(own)) else 0.0)
         if not np.all(np.isfinite(g)):

@@ -21,6 +21,7 @@ from ..geometry import model_cameras, model_poses
 from ..registration_record import read_registration
 from ..tie_surface import smooth_surface_filter
 from .record import _count_query_images, joint_record, tie_table, write_empty, write_record
+from .real_photo_terms import feature_side_of
 from .reference import ReferenceBlock
 from .sequences import Placed, place_sequences
 from .settings import STAGE, RegisterSettings, check_settings
@@ -135,8 +136,13 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
                    else sorted(q for q, c in auto_choice.items() if c["smooth_only"]))
     t_ba = time.time()
     swung = set(blocks) if settings.systematic_swing_where == "all" else set(smooth_only)
+    P = project.paths
+    # the size each block found its features at; a sequence whose SfM made no model has no record:
+    # its features came from the same [sfm] section as the reference block's
+    sides = {"reference": feature_side_of(P.stage(REFERENCE_STAGE))}
+    sides.update({q: feature_side_of(P.stage(QUERIES_STAGE) / q) or sides["reference"] for q in blocks})
     poses, cams, covs, per_image, floors = query_poses(j, cov, settings.systematic_swing_px, swung, placed.resected,
-                                                       project.paths.stage(REFERENCE_STAGE) / "model", settings.sigma)
+                                                       P.stage(REFERENCE_STAGE) / "model", settings.sigma, sides)
     tie_rows, bad = tie_table(j, clicks, placed.statuses, dropped, placed.report, prefixes)
     for seq in blocks:
         placed.report[seq]["n_tiepoints_final_ba"] = sum(1 for r in tie_rows.values()

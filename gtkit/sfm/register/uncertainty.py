@@ -1,5 +1,5 @@
-"""The uncertainty model: each query photo's pose covariance, the final joint BA's (scaled by the
-sequence's measured residual field where it exceeds the BA's 1-px assumption) plus a systematic tilt
+"""The uncertainty model: each query photo's pose covariance, the final joint BA's (at 1 px of the
+size its features were found at, or the sequence's measured residual field where that is larger) plus a systematic tilt
 about the ground it sees (``systematic_swing_px``) on the sequences it applies to, plus the reference
 block's own uncertainty where the photo sees it (:mod:`.real_photo_terms`, issue 48)."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ from ...camera import Camera
 from ...pose import Pose, skew
 from ..crossmatch import AUTO_PREFIX
 from .joint import Joint, _median_depth
-from .real_photo_terms import SigmaSettings, reference_shape, reference_term, residual_variance_factor
+from .real_photo_terms import SigmaSettings, feature_noise_px, reference_shape, reference_term, residual_variance_factor
 
 
 def swing_covariance(t: np.ndarray, depth_m: float, focal_px: float, swing_px: float) -> np.ndarray:
@@ -59,11 +59,12 @@ def _with_reference(pose: Pose, c_ref: np.ndarray) -> Pose:
 
 
 def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict, ref_model=None,
-                sigma: SigmaSettings = SigmaSettings()):
+                sigma: SigmaSettings = SigmaSettings(), feature_side: dict[str, int | None] | None = None):
     """Each registered query photo's pose (with its covariance: the BA's, scaled by its sequence's
     residual field, plus the systematic swing on the sequences in ``swung`` and the reference block's
     own uncertainty from its SfM model folder ``ref_model``), camera and record (``resected``: the
-    photos left out by their sequence's SfM). Returns (poses, cameras, covariances, records, floors:
+    photos left out by their sequence's SfM; ``feature_side``: the long side each block's features were
+    found at, ``"reference"`` and each sequence, :func:`feature_noise_px`). Returns (poses, cameras, covariances, records, floors:
     photo -> the centre variance clicks do not lower: the terms added to the BA's, so that the
     guidance's sigma is the stated one)."""
     rec = j.rec
@@ -77,7 +78,8 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
             n = rec.images[e.image_id].name
             cnt[n] = cnt.get(n, 0) + 1
     factors = _sequence_factors(j, qids, sigma) if sigma.residual_field else {}
-    shape = (reference_shape(ref_model, {rec.images[i].name for i in j.ref_ids}, sigma)
+    side = (feature_side or {}) if sigma.feature_size else {}
+    shape = (reference_shape(ref_model, {rec.images[i].name for i in j.ref_ids}, sigma, side.get("reference"))
              if sigma.reference_shape and ref_model is not None and qids else None)
     floors: dict[str, float] = {}   # photo -> the systematic part's centre variance (clicks do not lower it)
     for iid in qids:
@@ -86,14 +88,16 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
         pose = _ba_pose(rec, cov, iid)
         ok = pose.covariance is not None
         sigma_ba = _position_sigma(pose)
-        terms: dict = {"ba_m": sigma_ba, "residual_factor": factors.get(seq)}
-        if ok and (factors.get(seq) or 0.0) > 1.0:
+        noise_px = feature_noise_px(rec.cameras[im.camera_id], side.get(seq))
+        terms: dict = {"ba_m": sigma_ba, "residual_factor": factors.get(seq), "feature_px": noise_px}
+        scale = max(noise_px ** 2, factors.get(seq) or 1.0)
+        if ok and scale > 1.0:
             # the scaled part is kept apart as systematic too (the guidance's clicks lower the BA's alone)
-            floors[im.name] = (factors[seq] - 1.0) * sigma_ba ** 2
-            pose = Pose(pose.R, pose.t, pose.covariance * factors[seq])
+            floors[im.name] = (scale - 1.0) * sigma_ba ** 2
+            pose = Pose(pose.R, pose.t, pose.covariance * scale)
         if ok and swing_px > 0 and seq in swung:
             sw = swing_covariance(pose.t, _median_depth(rec, im), rec.cameras[im.camera_id].mean_focal_length(),
-                                  swing_px)
+                                  swing_px * noise_px)
             sw_var = float(np.trace(Pose(pose.R, pose.t, sw).center_covariance()))
             floors[im.name] = floors.get(im.name, 0.0) + sw_var
             terms["swing_m"] = float(np.sqrt(sw_var))
