@@ -109,11 +109,6 @@ def judge_truth(site: Path) -> dict:
             "rows": rows}
 
 
-def _ba_factor(terms: dict) -> float:
-    """What the BA's variance was scaled by: the features' pixel squared or the residual field, the larger."""
-    return max((terms.get("feature_px") or 1.0) ** 2, terms.get("residual_factor") or 1.0)
-
-
 def sigma_before(row: dict) -> float | None:
     """The sigma the stage stated before issue 48: the BA's, plus the systematic swing where it applied."""
     t = row.get("terms") or {}
@@ -143,6 +138,8 @@ def shares(res: dict) -> dict:
 
 
 def main(argv=None) -> int:
+    from gtkit.sfm.register.real_photo_terms import variance_scale
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("projects", nargs="+", help="ALL then HELD projects (or sites with --truth)")
     ap.add_argument("--truth", action="store_true", help="sample sites judged against their truth")
@@ -164,7 +161,8 @@ def main(argv=None) -> int:
             t = r.get("terms") or {}
             print(f"  {r['photo']:28s} error {r['error_m']:.3f} m  sigma {sig:.3f} m (before "
                   f"{sigma_before(r) or float('nan'):.3f}; BA {t.get('ba_m') or float('nan'):.3f} x factor "
-                  f"{_ba_factor(t):.2f}, reference {t.get('reference_m') or 0.0:.3f}, swing "
+                  f"{variance_scale(t.get('feature_px') or 1.0, t.get('residual_factor')):.2f}, reference "
+                  f"{t.get('reference_m') or 0.0:.3f}, swing "
                   f"{t.get('swing_m') or 0.0:.3f})  limit {lim:.3f} m  {'held' if r['error_m'] <= lim else 'OUT'}"
                   f"  cam-axis error {np.round(r['error_cam_m'], 3).tolist()}")
         f = (lambda v: "-" if v is None else f"{v:.3f}")

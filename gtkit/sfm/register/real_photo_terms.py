@@ -48,6 +48,7 @@ import numpy as np
 import pycolmap
 
 from ...pose import Pose, skew
+from ...project import read_stage_record
 
 log = logging.getLogger(__package__)
 
@@ -82,11 +83,15 @@ def feature_noise_px(cam, feature_side: int | None) -> float:
     return max(1.0, max(int(cam.width), int(cam.height)) / float(feature_side))
 
 
+def variance_scale(noise_px: float, field_factor: float | None) -> float:
+    """What a covariance computed at 1 px is multiplied by: the features' own pixel squared
+    (:func:`feature_noise_px`), or the measured residual field where that is larger."""
+    return max(noise_px ** 2, field_factor or 1.0)
+
+
 def feature_side_of(stage_dir: Path) -> int | None:
     """The long side an SfM block found its features at (its record's ``features.max_image_size``),
     None where it has no record saying so."""
-    from ...project import read_stage_record
-
     r = read_stage_record(stage_dir)
     v = ((r.settings.get("features") or {}).get("max_image_size")) if r is not None else None
     return int(v) if isinstance(v, (int, float)) and v > 0 else None
@@ -251,7 +256,7 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
     ground = {}
     for a, i in enumerate(ids):
         im = rec.images[i]
-        scale = max(feature_noise_px(rec.cameras[im.camera_id], feature_side) ** 2, field_factor or 1.0)
+        scale = variance_scale(feature_noise_px(rec.cameras[im.camera_id], feature_side), field_factor)
         own = _own_center_cov(rec, im, poses[a])
         g = Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3] - (own if own is not None and np.all(np.isfinite(own)) else 0.0)
         if not np.all(np.isfinite(g)):

@@ -10,7 +10,8 @@ from ...camera import Camera
 from ...pose import Pose, skew
 from ..crossmatch import AUTO_PREFIX
 from .joint import Joint, _median_depth
-from .real_photo_terms import SigmaSettings, feature_noise_px, reference_shape, reference_term, residual_variance_factor
+from .real_photo_terms import (SigmaSettings, feature_noise_px, reference_shape, reference_term,
+                               residual_variance_factor, variance_scale)
 
 
 def swing_covariance(t: np.ndarray, depth_m: float, focal_px: float, swing_px: float) -> np.ndarray:
@@ -90,7 +91,7 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
         sigma_ba = _position_sigma(pose)
         noise_px = feature_noise_px(rec.cameras[im.camera_id], side.get(seq))
         terms: dict = {"ba_m": sigma_ba, "residual_factor": factors.get(seq), "feature_px": noise_px}
-        scale = max(noise_px ** 2, factors.get(seq) or 1.0)
+        scale = variance_scale(noise_px, factors.get(seq))
         if ok and scale > 1.0:
             # the scaled part is kept apart as systematic too (the guidance's clicks lower the BA's alone)
             floors[im.name] = (scale - 1.0) * sigma_ba ** 2
