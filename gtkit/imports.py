@@ -10,9 +10,13 @@
     point clouds to ``model/points.ply`` (+ sidecar), so later stages find them where they look.
 
 ``import_poses(project, source, settings)`` accepts a ContextCapture BlocksExchange XML (or a
-``.xmlz``), a COLMAP model folder (text or binary), or an hloc/UAVD4L pose file (with
-``settings.intrinsics``); it writes ``work/import/poses.txt`` + ``intrinsics.txt`` (gtkit's
-formats, project frame) and ``work/import/colmap/`` (a COLMAP model that opens in COLMAP's GUI).
+``.xmlz``), a COLMAP model folder (text or binary), a kapture folder (read by kapture's loader), or
+an hloc/UAVD4L pose file (with ``settings.intrinsics``, else ``queries_with_intrinsics.txt`` beside
+it, else the project's ``cameras.txt``); it writes ``work/import/poses.txt`` + ``intrinsics.txt``
+(gtkit's formats, project frame) and ``work/import/colmap/`` (a COLMAP model that opens in COLMAP's
+GUI). What ``gtkit export dataset`` writes reads back this way (its hloc file, COLMAP model or
+kapture folder); such a source's frame is checked against the project's (``dataset.json``), and its
+poses' covariances (``pseudo_gt_uncertainty.txt``) come along into ``work/import/covariances.txt``.
 
 Both record what was imported and from where in ``project.toml`` (``[imports.model]``,
 ``[imports.poses]``).
@@ -158,21 +162,82 @@ def _toml_safe(d: dict) -> dict:
 
 def detect_pose_kind(source: Path) -> str:
     from .io.colmap_model import is_colmap_model
+    from .io.kapture_poses import kapture_folder
 
     source = Path(source)
     if not source.exists():
         raise GtkitError("pose source not found", source)
     if is_colmap_model(source):
         return "colmap"
+    if kapture_folder(source) is not None:
+        return "kapture"
     if source.is_dir():
-        raise GtkitError("folder is not a COLMAP model (cameras.bin/txt, images.bin/txt)", source)
+        raise GtkitError("folder is neither a COLMAP model (cameras.bin/txt, images.bin/txt) nor a kapture folder "
+                         "(sensors/sensors.txt)", source)
     s = source.suffix.lower()
     if s in (".xml", ".xmlz"):
         return "blocks_exchange"
     if s == ".txt":
         return "hloc"
-    raise GtkitError("unknown pose format (expected BlocksExchange .xml/.xmlz, a COLMAP model folder, "
-                     "or a pose file 'name qw qx qy qz tx ty tz')", source)
+    raise GtkitError("unknown pose format (expected BlocksExchange .xml/.xmlz, a COLMAP model folder, a kapture "
+                     "folder, or a pose file 'name qw qx qy qz tx ty tz')", source)
+
+
+def exported_dataset(source: Path) -> Path | None:
+    """The ``gtkit export dataset`` folder that holds ``source`` (its hloc file, COLMAP model or kapture
+    folder: ``dataset.json`` up to three levels up), or None."""
+    import json
+
+    for d in list(Path(source).absolute().parents)[:3]:
+        f = d / "dataset.json"
+        if f.is_file():
+            try:
+                return d if json.loads(f.read_text(encoding="utf-8")).get("format") == "gtkit-dataset" else None
+            except (OSError, ValueError, AttributeError):
+                return None
+    return None
+
+
+def check_dataset_frame(dataset: Path, frame) -> None:
+    """A dataset exported in another frame than ``frame`` is refused in one line."""
+    import json
+
+    from .geo import parse_crs
+
+    f = dataset / "dataset.json"
+    site = json.loads(f.read_text(encoding="utf-8")).get("site") or {}
+    if not parse_crs(site.get("crs"), f).equals(frame.crs) or not np.allclose(site.get("origin"), frame.origin, atol=1e-9):
+        raise GtkitError(f"the dataset's frame {site.get('crs')} {site.get('origin')} differs from the project's "
+                         f"{frame.crs_spec} {list(frame.origin)}", f)
+
+
+def read_pose_source(source: Path, frame=None, intrinsics: str | Path | None = None) -> tuple[str, dict, dict]:
+    """(kind, poses, cameras) of a COLMAP model, a kapture folder or an hloc pose file, in the frame they
+    state (checked against ``frame`` where they state one). An hloc file's cameras come from
+    ``intrinsics``, else ``queries_with_intrinsics.txt`` beside it, else none ({})."""
+    source = Path(source)
+    kind = detect_pose_kind(source)
+    if kind == "blocks_exchange":
+        raise GtkitError("a BlocksExchange file needs a project (gtkit import poses DIR SOURCE)", source)
+    dataset = exported_dataset(source)
+    if dataset is not None and frame is not None:
+        check_dataset_frame(dataset, frame)
+    if kind == "colmap":
+        from .io.colmap_model import read_colmap_model
+
+        poses, cams = read_colmap_model(source, frame)
+        return kind, poses, cams
+    if kind == "kapture":
+        from .io.kapture_poses import read_kapture_poses
+
+        poses, cams = read_kapture_poses(source)
+        return kind, poses, cams
+    from .io.poses import read_intrinsics, read_poses
+
+    poses = read_poses(source)
+    beside = source.parent / "queries_with_intrinsics.txt"
+    intr = intrinsics or (beside if beside.is_file() else None)
+    return kind, poses, read_intrinsics(intr) if intr else {}
 
 
 def _unzip_xmlz(source: Path, tmp_dir: Path) -> Path:
@@ -199,23 +264,19 @@ def read_any_poses(project: Project, source: Path, settings: PoseImportSettings)
             xml = _unzip_xmlz(source, project.paths.stage(STAGE) / "xmlz")
         block = read_blocks_exchange(xml, frame, image_root=project.paths.images, drop_k3=settings.drop_k3)
         return kind, block.poses, block.cameras, block.skipped
-    if kind == "colmap":
-        from .io.colmap_model import read_colmap_model
-
-        poses, cams = read_colmap_model(source, frame)
-        return kind, poses, cams, []
-    from .io.poses import read_intrinsics, read_poses
-
-    poses = read_poses(source)
-    if not settings.intrinsics:
-        default = project.paths.cameras
-        if not default.is_file():
+    beside = source.parent / "queries_with_intrinsics.txt"
+    if kind == "hloc" and not settings.intrinsics:
+        if beside.is_file():
+            settings.intrinsics = str(beside)
+        elif project.paths.cameras.is_file():
+            settings.intrinsics = str(project.paths.cameras)
+        else:
             raise GtkitError("a pose file needs intrinsics: give --intrinsics FILE (name MODEL W H params)", source)
-        settings.intrinsics = str(default)
-    cams = read_intrinsics(settings.intrinsics)
+    kind, poses, cams = read_pose_source(source, frame, settings.intrinsics)
     missing = sorted(set(poses) - set(cams))
     if missing:
-        raise GtkitError(f"no intrinsics for {len(missing)} posed images (e.g. {missing[0]})", settings.intrinsics)
+        raise GtkitError(f"no intrinsics for {len(missing)} posed images (e.g. {missing[0]})",
+                         settings.intrinsics if kind == "hloc" else source)
     return kind, poses, {k: cams[k] for k in poses}, []
 
 
@@ -233,13 +294,33 @@ def import_poses(project, source: str | Path, settings: PoseImportSettings | Non
     header = f"imported from {source} ({kind}); frame {project.frame.crs_spec} origin {list(project.frame.origin)}"
     write_poses(out / POSES, poses, header=header)
     write_intrinsics(out / INTRINSICS, cams)
+    n_cov = _import_covariances(source, poses, out)
     colmap = write_colmap_model(out / "colmap", poses, cams, project.frame, binary=settings.colmap_binary)
     info = {"format": kind, "n_images": len(poses), "n_skipped": len(skipped), "n_cameras": len(set(cams.values())),
             "poses": str(out / POSES), "intrinsics": str(out / INTRINSICS), "colmap": str(colmap),
+            "n_covariances": n_cov,
             "settings": _toml_safe(asdict(settings))}
     project.record_import("poses", source, **info)
     log.info("imported %d poses (%s) from %s; %d photos without a pose skipped", len(poses), kind, source, len(skipped))
     return info
+
+
+def _import_covariances(source: Path, poses: dict, out: Path) -> int:
+    """The covariances of a ``gtkit export dataset`` source's poses (its ``pseudo_gt_uncertainty.txt``)
+    into ``out/covariances.txt``; an earlier import's file removed otherwise. Returns how many."""
+    from .io.poses import COVARIANCES, write_covariances
+
+    (out / COVARIANCES).unlink(missing_ok=True)
+    dataset = exported_dataset(source)
+    side = dataset / "pseudo_gt_uncertainty.txt" if dataset is not None else None
+    if side is None or not side.is_file():
+        return 0
+    from .dataset.formats import read_uncertainty
+
+    cov = {n: c for n, (_sp, _sr, c) in read_uncertainty(side).items() if n in poses}
+    if cov:
+        write_covariances(out / COVARIANCES, cov)
+    return len(cov)
 
 
 def export_colmap(project, out_dir: str | Path, poses_file: str | Path | None = None,

@@ -1,4 +1,5 @@
-"""``gtkit export dsm|ortho|mesh|coords``: surveyor outputs in the project CRS (see gtkit.export).
+"""``gtkit export dsm|ortho|mesh|coords|dataset``: surveyor outputs in the project CRS (see gtkit.export),
+and the pseudo-GT as a dataset to publish (see gtkit.dataset).
 
 Examples::
 
@@ -7,6 +8,7 @@ Examples::
     gtkit export ortho site [--resolution 0.1]
     gtkit export mesh site --format glb [--decimate 200000]
     gtkit export coords site [--poses work/register/poses.txt] [--targets exports/tracks.csv]
+    gtkit export dataset site OUT [--format kapture,colmap,hloc] [--copy] [--with-model]
 """
 from __future__ import annotations
 
@@ -63,6 +65,17 @@ def register(sub):
     c.add_argument("--no-gcps", action="store_true", help="do not export gcp_list.txt's points")
     c.add_argument("--out-dir", help="output folder (default: exports/coordinates)")
     c.set_defaults(func=run_coords)
+
+    s = ex.add_parser("dataset", help="the pseudo-GT as a dataset to publish: kapture, COLMAP and hloc files, "
+                      "sigma and covariance of every pose, a datasheet (DATASET.md, dataset.json)")
+    s.add_argument("project")
+    s.add_argument("out", help="output folder (new, empty, or a dataset exported before: replaced whole; "
+                   "unchanged inputs: nothing is written)")
+    s.add_argument("--format", default="kapture,colmap,hloc",
+                   help="comma-separated formats to write (default kapture,colmap,hloc)")
+    s.add_argument("--copy", action="store_true", help="copy the photos instead of linking them")
+    s.add_argument("--with-model", action="store_true", help="add the reference model and the DSM")
+    s.set_defaults(func=run_dataset)
 
 
 def _settings(stage: str, project_dir, cli: dict):
@@ -127,3 +140,16 @@ def run_coords(args):
                   {"poses": args.poses, "targets": args.targets, "include_gcps": False if args.no_gcps else None})
     for path in coordinates.run(args.project, s, args.out_dir).values():
         print(path)
+
+
+def run_dataset(args):
+    from ..dataset.stage import DatasetSettings, run
+
+    info = run(args.project, args.out, DatasetSettings(formats=tuple(args.format.split(",")), copy=args.copy,
+                                                       with_model=args.with_model))
+    if info["status"] == "up to date":
+        print(f"{info['out']}: up to date (nothing written)")
+    else:
+        kept = ", ".join(f"{v} {k}" for k, v in sorted(info["kept_out_by_kind"].items()))
+        print(f"{info['out']}: {info['n_published']} pseudo-GT poses published ({', '.join(info['formats'])}), "
+              f"{info['n_kept_out']} photos kept out{f' ({kept})' if kept else ''}; see DATASET.md")

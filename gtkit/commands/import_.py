@@ -25,10 +25,12 @@ def register(sub):
     m.add_argument("--no-copy", action="store_true", help="do not write single meshes/point clouds into model/")
     m.add_argument("--overwrite", action="store_true", help="replace an existing model/reference.obj")
     m.set_defaults(func=run_model)
-    q = ss.add_parser("poses", help="BlocksExchange XML/XMLZ, COLMAP model folder, or hloc pose file")
+    q = ss.add_parser("poses", help="BlocksExchange XML/XMLZ, COLMAP model folder, kapture folder, or hloc pose "
+                      "file (what 'gtkit export dataset' writes reads back)")
     q.add_argument("dir", help="project folder")
     q.add_argument("source")
-    q.add_argument("--intrinsics", help="intrinsics file for an hloc/UAVD4L pose file (default: cameras.txt)")
+    q.add_argument("--intrinsics", help="intrinsics file for an hloc/UAVD4L pose file (default: "
+                   "queries_with_intrinsics.txt beside it, else cameras.txt)")
     q.add_argument("--drop-k3", action="store_true", help="BlocksExchange: ignore a non-zero K3")
     q.add_argument("--text", action="store_true", help="write the COLMAP export as text instead of binary")
     q.set_defaults(func=run_poses)
@@ -59,6 +61,7 @@ def run_poses(args):
     info = import_poses(args.dir, args.source, PoseImportSettings(
         intrinsics=args.intrinsics, drop_k3=args.drop_k3, colmap_binary=not args.text))
     print(f"imported {info['n_images']} poses ({info['format']}, {info['n_cameras']} cameras"
-          f"{', %d photos without a pose skipped' % info['n_skipped'] if info['n_skipped'] else ''}) -> "
+          f"{', %d photos without a pose skipped' % info['n_skipped'] if info['n_skipped'] else ''}"
+          f"{', %d covariances' % info['n_covariances'] if info.get('n_covariances') else ''}) -> "
           f"{info['poses']}, COLMAP model {info['colmap']}")
     return 0
