@@ -8,7 +8,6 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
 
 from ...errors import GtkitError
 from ...io.tiepoints import read_tiepoints
@@ -19,12 +18,13 @@ from ..crossmatch import cross_matches, reference_point_of
 from ..extend_reference import extension_ties
 from ..geometry import model_cameras, model_poses
 from ..registration_record import read_registration
-from ..tie_surface import smooth_surface_filter
+from ..tie_surface import smooth_surface_judge
 from .record import _count_query_images, joint_record, tie_table, write_empty, write_record
 from .real_photo_terms import feature_side_of
 from .reference import ReferenceBlock
 from .sequences import Placed, place_sequences
 from .settings import STAGE, RegisterSettings, check_settings
+from .joint import ties_per_photo
 from .tie_bias import _adjust_choosing_ties
 from .uncertainty import query_poses
 
@@ -98,13 +98,7 @@ def _automatic_ties(project: Project, ref: ReferenceBlock, placed: Placed, model
     auto = cross_matches(qp, qc, [P.stage(QUERIES_STAGE) / sq / "database.db" for sq in placed.blocks], ref.rec,
                          ref.db, settings.cross, ref=ref.points_read)
     n_auto_found = len(auto)
-    smooth = smooth_surface_filter(model, project.frame, settings.smooth_surface) if auto else None
-    rough: set[str] = set()
-    if smooth is not None:
-        ids = sorted(auto)
-        keep = smooth(np.array([ref.rec.points3D[reference_point_of(t)].xyz for t in ids]))
-        rough = {t for t, k in zip(ids, keep) if not k}
-        log.info("automatic tie points: %d of %d on smooth model surface", len(auto) - len(rough), n_auto_found)
+    rough = _rough_ties(project, ref, auto, model) if auto else set()
     solo = sorted(n for n, r in placed.resected.items() if r.get("resected") and n in qp)
     if solo and settings.extend.enabled:
         ext, ext_rec = extension_ties(
@@ -115,6 +109,51 @@ def _automatic_ties(project: Project, ref: ReferenceBlock, placed: Placed, model
             placed.resected[n]["extended"] = r
         auto.update(ext)
     return auto, rough, n_auto_found
+
+
+def _calibration_sources(P, blocks) -> dict[str, dict]:
+    """Per sequence, where its cameras' intrinsics came from (its SfM record): cameras.txt, the
+    reference block's calibration of the same camera (:mod:`gtkit.sfm.block_cameras`), its EXIF focal,
+    or a self-calibration from its own few photos (which the joint BA then replaces by a calibration
+    from the reference's points where the ties allow)."""
+    import json
+
+    out = {}
+    for q in blocks:
+        try:
+            b = json.loads((P.stage(QUERIES_STAGE) / q / "block.json").read_text())
+        except (OSError, ValueError):
+            out[q] = {"source": "unknown (no SfM record)"}
+            continue
+        pol = b.get("intrinsics_policy", {})
+        if pol.get("self_calibrated_cameras"):
+            out[q] = {"source": "self-calibrated", "n_photos": b.get("n_registered")}
+        elif b.get("calibration_from_reference"):
+            out[q] = {"source": "the reference block's calibration: " + "; ".join(b["calibration_from_reference"])}
+        elif pol.get("fixed_cameras"):
+            out[q] = {"source": "cameras.txt"}
+        else:
+            out[q] = {"source": "EXIF focal" + (", refined by its SfM" if pol.get("exif_focal_refined") else "")}
+    return out
+
+
+def _rough_ties(project: Project, ref: ReferenceBlock, auto: dict, model: Path | None) -> set[str]:
+    """The automatic ties the model shows off smooth surface (:mod:`gtkit.sfm.tie_surface`); those it
+    cannot judge (no model, the disk off the model) are not among them."""
+    settings = ref.settings.smooth_surface
+    judge = smooth_surface_judge(model, project.frame, settings, ref.rec,
+                                 feature_side_of(project.paths.stage(REFERENCE_STAGE)))
+    if judge is None:
+        return set()
+    try:
+        ids = sorted(auto)
+        keep, decided = judge.judge([reference_point_of(t) for t in ids])
+    finally:
+        judge.release()
+    rough = {t for t, k, d in zip(ids, keep, decided) if d and not k}
+    log.info("automatic tie points: %d of %d on smooth model surface, %d off it, %d undecided (kept)",
+             int((keep & decided).sum()), len(ids), len(rough), int((~decided).sum()))
+    return rough
 
 
 def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, clicks: dict, model: Path | None,
@@ -128,12 +167,21 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     auto, rough, n_auto_found = _automatic_ties(project, ref, placed, model, out)
     clicks.update(auto)
     t_cm = time.time() - t_cm
+    calibration = _calibration_sources(project.paths, blocks)
+    calibrate = {q for q, c in calibration.items() if c["source"] == "self-calibrated"}
     j, summary, cov, dropped, auto_choice = _adjust_choosing_ties(ref.rec, blocks, placed.statuses, clicks, set(auto),
-                                                                 rough, settings)
+                                                                 rough, settings, calibrate)
+    for q, c in calibration.items():
+        if j.seq_cams.get(q) and j.seq_cams[q] <= j.calibrated:
+            c["source"] = "calibrated from the reference's 3D points"
+        elif q in calibrate:
+            c["why_not_from_reference"] = (f"{ties_per_photo(j, q)} automatic ties a photo, "
+                                           f"{settings.calibrate_from_ties} needed to calibrate from them")
+        c["automatic_ties_per_photo"] = ties_per_photo(j, q)
+        placed.report[q]["calibration"] = c
     auto = {t: v for t, v in auto.items() if t in j.clicks}
     # the sequences whose automatic ties off smooth surface were dropped
-    smooth_only = (sorted(blocks) if rough and settings.smooth_surface.choose == "smooth"
-                   else sorted(q for q, c in auto_choice.items() if c["smooth_only"]))
+    smooth_only = sorted(q for q, c in auto_choice.items() if c["smooth_only"])
     t_ba = time.time()
     swung = set(blocks) if settings.systematic_swing_where == "all" else set(smooth_only)
     P = project.paths

@@ -71,7 +71,7 @@ def choose_smooth(all_ties: dict, smooth_only: dict, factor: float, on: str = "b
     moves only the first). Inputs: photo -> (pose with covariance, median depth) of each solution."""
     if on == "both":
         c, f = choose_smooth(all_ties, smooth_only, factor, "centre"), choose_smooth(all_ties, smooth_only, factor, "footprint")
-        return {q: {**f[q], "smooth_only": c[q]["smooth_only"] and f[q]["smooth_only"], "on": "both",
+        return {q: {**c[q], **f[q], "smooth_only": c[q]["smooth_only"] and f[q]["smooth_only"], "on": "both",
                     "centre_shift_m": c[q]["shift_m"], "centre_limit_m": c[q]["limit_m"]} for q in f}
     seqs: dict[str, list[str]] = {}
     for n in all_ties:
@@ -83,8 +83,9 @@ def choose_smooth(all_ties: dict, smooth_only: dict, factor: float, on: str = "b
         d = float(np.median([x[0] for x in shifts]))
         sa = [x[1] for x in shifts if x[1] is not None]
         ss = [x[2] for x in shifts if x[2] is not None]
-        if not sa or not ss:
-            out[q] = {"smooth_only": True, "shift_m": d, "limit_m": None, "on": on}
+        if not sa or not ss:   # a solution without covariance: the test cannot say, so every tie is kept
+            out[q] = {"smooth_only": False, "shift_m": d, "limit_m": None, "on": on,
+                      "undecided": "no covariance to test by"}
             continue
         spread = float(np.sqrt(max(np.median(ss) ** 2 - np.median(sa) ** 2, 0.0)))
         out[q] = {"smooth_only": bool(d > factor * spread), "shift_m": d, "limit_m": factor * spread, "on": on}
@@ -96,6 +97,8 @@ def tie_test_words(c: dict) -> str:
     records without ``on`` predate the footprint test and compared centres) in words."""
     def lim(v):
         return "-" if v is None else f"{v:.3f}"
+    if c.get("shift_m") is None:   # not tested (its smooth ties alone do not hold it)
+        return c.get("undecided", "not tested")
     what = "centres" if c.get("on", "centre") == "centre" else "footprints"
     words = f"the two solutions' {what} {c['shift_m']:.3f} m apart, limit {lim(c['limit_m'])} m"
     if "centre_shift_m" in c:
@@ -103,28 +106,59 @@ def tie_test_words(c: dict) -> str:
     return words
 
 
+def _held_by_smooth(clicks: dict, auto: set[str], rough: set[str], seqs, min_smooth: int) -> dict[str, int]:
+    """Per sequence, the median number of automatic ties on smooth surface its photos hold
+    (the sequences whose photos hold ``min_smooth`` or more are those the smooth ties alone can hold)."""
+    per_photo: dict[str, int] = {}
+    for tid, obs in clicks.items():
+        if tid in auto and tid not in rough:
+            for n in obs:
+                if n.startswith("queries/"):
+                    per_photo[n] = per_photo.get(n, 0) + 1
+    out = {}
+    for q in seqs:
+        counts = [c for n, c in per_photo.items() if n.split("/")[1] == q]
+        out[q] = int(np.median(counts)) if counts else 0
+    return out
+
+
 def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str], rough: set[str],
-                          settings: RegisterSettings):
+                          settings: RegisterSettings, calibrate: set[str] = frozenset()):
     """The joint adjustment, with the automatic ties on rough model surface (``rough``) kept only for
-    the sequences where they are not biased (``choose_smooth``); ``rough`` empty: one adjustment."""
+    the sequences where they are not biased (``choose_smooth``); ``rough`` empty: one adjustment.
+    A sequence whose smooth-surface ties alone cannot hold it (fewer than ``min_smooth`` a photo)
+    keeps all of its ties untested: no test can say the others are biased, and dropping them would
+    leave it tied by too little (issue 55: 0 of 178-1622 ties kept on walls and statues)."""
     if not rough:
-        return (*_adjust(ref_rec, blocks, statuses, clicks, auto, settings), {})
-    mode = settings.smooth_surface.choose
-    smooth_clicks = _without(clicks, rough, set(blocks))
-    if mode == "smooth":
-        return (*_adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings), {})
-    a = _adjust(ref_rec, blocks, statuses, clicks, auto, settings)
-    s = _adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings)
-    choice = choose_smooth(_solution(a[0], a[2]), _solution(s[0], s[2]), settings.smooth_surface.test_factor,
-                           settings.smooth_surface.test_on)
-    picked = {q for q, c in choice.items() if c["smooth_only"]}
-    for q, c in choice.items():
+        return (*_adjust(ref_rec, blocks, statuses, clicks, auto, settings, calibrate), {})
+    ss = settings.smooth_surface
+    n_smooth = _held_by_smooth(clicks, auto, rough, blocks, ss.min_smooth)
+    held = {q for q, n in n_smooth.items() if n >= ss.min_smooth}
+    choice = {q: {"smooth_only": False, "shift_m": None, "limit_m": None, "smooth_ties_per_photo": n,
+                  "undecided": f"all automatic ties kept: {n} on smooth surface a photo (median), "
+                               f"{ss.min_smooth} needed to test the others"}
+              for q, n in n_smooth.items() if q not in held}
+    for q in sorted(choice):
+        log.info("sequence %s: %s", q, choice[q]["undecided"])
+    if not held:
+        return (*_adjust(ref_rec, blocks, statuses, clicks, auto, settings, calibrate), choice)
+    smooth_clicks = _without(clicks, rough, held)
+    if ss.choose == "smooth":
+        choice.update({q: {"smooth_only": True, "shift_m": None, "limit_m": None, "smooth_ties_per_photo": n_smooth[q],
+                           "undecided": 'smooth-surface ties only ([register.smooth_surface] choose = "smooth")'}
+                       for q in held})
+        return (*_adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings, calibrate), choice)
+    a = _adjust(ref_rec, blocks, statuses, clicks, auto, settings, calibrate)
+    s = _adjust(ref_rec, blocks, statuses, smooth_clicks, auto, settings, calibrate)
+    tested = choose_smooth(_solution(a[0], a[2]), _solution(s[0], s[2]), ss.test_factor, ss.test_on)
+    tested = {q: {**c, "smooth_ties_per_photo": n_smooth[q]} for q, c in tested.items() if q in held}
+    choice.update(tested)
+    picked = {q for q, c in tested.items() if c["smooth_only"]}
+    for q, c in sorted(tested.items()):
         log.info("sequence %s: %s (%s)", q, "automatic ties on smooth surface only" if c["smooth_only"]
                  else "all automatic ties", tie_test_words(c))
     if not picked:
         return (*a, choice)
-    if picked >= set(choice):
+    if picked == held:
         return (*s, choice)
-    return (*_adjust(ref_rec, blocks, statuses, _without(clicks, rough, picked), auto, settings), choice)
-
-
+    return (*_adjust(ref_rec, blocks, statuses, _without(clicks, rough, picked), auto, settings, calibrate), choice)
