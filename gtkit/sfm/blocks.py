@@ -19,19 +19,19 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..camera import Camera
 from ..determinism import ba_threads, single_thread_mapper
 from ..errors import GtkitError
 from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
 from ..io.odm import read_gcp_list
-from ..io.poses import INTRINSICS, POSES, read_intrinsics, write_intrinsics, write_poses
+from ..io.poses import INTRINSICS, POSES, write_intrinsics, write_poses
 from ..photo_positions import positions_and_accuracy
 from ..project import (IMAGE_EXT, Project, cpu_seconds, file_fingerprint, mark_stage_done, settings_dict, settings_key,
                        stage_done, start_stage_clock)
 from . import quiet_colmap
 from ..progress import progress_bar
 from ..queries import QUERY_PATTERN
+from .block_cameras import REFERENCE_STAGE, camera_groups, reference_calibrations
 from .database import (CameraGroup, FeatureSettings, MatchSettings, build_database, failure_reason,
                        image_diagnostics, match_pairs, read_descriptors)
 from .geometry import RegistrationError, model_cameras, model_poses
@@ -42,7 +42,6 @@ from .reference_report import write_reference_report
 
 log = logging.getLogger(__name__)
 
-REFERENCE_STAGE = "sfm_reference"
 QUERIES_STAGE = "sfm_queries"
 
 
@@ -150,51 +149,6 @@ def pairing_positions(project: Project, names: list[str], centres: dict[str, np.
         r = m.rel_alt / max(-d[2], 1.0 / max_range_factor)
         out[n] = centres[n] + d * r
     return out
-
-
-def reference_calibrations(project: Project, names: list[str]) -> dict[str, Camera]:
-    """{photo: the reference block's calibration of the same camera (EXIF make, model, size and focal:
-    gtkit.io.exif.camera_key)} for photos that are not reference photos: a query sequence shot with
-    a reference camera (held-out photos of the same flight) starts from the calibration its many
-    photos made, instead of calibrating itself from a handful."""
-    from ..io.exif import camera_key
-
-    f = project.paths.intrinsics(REFERENCE_STAGE)
-    if not f.is_file():
-        return {}
-    ref = read_intrinsics(f)
-    by_key: dict[tuple, Camera] = {}
-    for n, c in sorted(ref.items()):
-        try:
-            by_key.setdefault(camera_key(read_photo_meta(project.paths.images / n)), c)
-        except GtkitError:
-            continue
-    out = {}
-    for n in names:
-        try:
-            k = camera_key(read_photo_meta(project.paths.images / n))
-        except GtkitError:
-            continue
-        if (k[0] or k[1]) and k in by_key:
-            out[n] = by_key[k]
-    return out
-
-
-def camera_groups(project: Project, names: list[str], positions: dict,
-                  calibrations: dict[str, Camera] | None = None) -> list[CameraGroup]:
-    """One group per distinct cameras.txt calibration (else ``calibrations``' entry, e.g. the
-    reference block's calibration of the same camera); images without either: one group per folder."""
-    cams: dict[str, Camera] = read_intrinsics(project.paths.cameras) if project.paths.cameras.is_file() else {}
-    cams = {**(calibrations or {}), **cams}
-    groups: dict[tuple, CameraGroup] = {}
-    for n in names:
-        c = cams.get(n)
-        key = ("cam", c.model, c.width, c.height, c.params) if c else ("folder", str(Path(n).parent))
-        g = groups.setdefault(key, CameraGroup([], c))
-        g.names.append(n)
-        if n in positions:
-            g.positions[n] = positions[n]
-    return list(groups.values())
 
 
 def _inputs(project: Project, names: list[str]) -> dict:
@@ -649,8 +603,8 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     metas = photo_metas(project, names)   # each photo's header read once: positions, pairing, georegistration
     positions, accuracy = gps_positions_and_accuracy(project, names, metas)
     look = pairing_positions(project, names, positions, metas=metas) if settings.pair_by_footprint else positions
-    groups = camera_groups(project, names, positions,
-                           reference_calibrations(project, names) if kind == "sequence" else None)
+    from_ref, from_ref_why = reference_calibrations(project, names) if kind == "sequence" else ({}, {})
+    groups = camera_groups(project, names, positions, from_ref)
     db = out / "database.db"
     m = settings.matching
     reuse, pairs_used, n_pairs, (t_feat, c_feat) = _feature_database(
@@ -671,6 +625,9 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                                      "gps_priors_in_ba": policy["gps_priors_in_ba"],
                                      "fixed_cameras": sorted(policy["constant_cameras"]),
                                      "self_calibrated_cameras": sorted(policy["self_calibrate"])}}
+    if from_ref_why:   # photos that start from the reference block's calibration, and by what rule
+        summary["calibration_from_reference"] = {r: sorted(n for n, w in from_ref_why.items() if w == r)
+                                                 for r in sorted(set(from_ref_why.values()))}
     summary["mapper"] = mapper_record["name"]
     summary["mapper_why"] = mapper_record["why"]
     if "seeded" in mapper_record:

@@ -70,7 +70,9 @@ def is_registered(s: dict) -> bool:
 
 
 def _num(v, nd: int = 3, unit: str = "") -> str:
-    return "–" if v is None else (f"{v:.{nd}f}{unit}" if isinstance(v, (int, float)) else str(v))
+    if isinstance(v, int) and not isinstance(v, bool):
+        return f"{v}{unit}"
+    return "–" if v is None else (f"{v:.{nd}f}{unit}" if isinstance(v, float) else str(v))
 
 
 def _left_out(s: dict) -> tuple[int, int, list[str]]:
@@ -116,7 +118,19 @@ def describe(s: dict) -> str:
     done, n, why = _left_out(s)
     if n:
         text += f"; {done} of {n} photos its SfM left out placed on their own" + (f" (not: {', '.join(why)})" if why else "")
-    return text
+    return text + calibration_words(s)
+
+
+def calibration_words(s: dict) -> str:
+    """'; camera: where its intrinsics came from' for a sequence's entry ('' in an older record)."""
+    c = s.get("calibration") or {}
+    if not c:
+        return ""
+    words = f"; camera: {c['source']}"
+    if c["source"] == "self-calibrated":
+        words += f" from its own {c.get('n_photos', '–')} photos (the last resort"
+        words += f": {c['why_not_from_reference']})" if c.get("why_not_from_reference") else ")"
+    return words
 
 
 def counts(record_sequences: dict[str, dict]) -> dict[str, int]:

@@ -12,6 +12,7 @@ import pycolmap
 from ...determinism import ba_threads
 from ..crossmatch import AUTO_PREFIX
 from ..geometry import model_cameras, model_poses, triangulate_many
+from .covariance import joint_covariance
 from .settings import RegisterSettings
 
 log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
@@ -51,6 +52,9 @@ class Joint:
     slot: dict[tuple[str, str], int]        # (tie id, image) -> point2D index of that click
     clicks: dict[str, dict[str, tuple]]     # tie id -> {image: (x, y)} for every click on a joint image
     tie_pids: dict[str, int] = field(default_factory=dict)
+    seq_cams: dict[str, set[int]] = field(default_factory=dict)   # sequence -> its cameras' ids here
+    calibrated: set[int] = field(default_factory=set)   # query cameras whose intrinsics the BA refines
+    undetermined: dict[str, str] = field(default_factory=dict)   # sequence -> why its covariance is undetermined
 
     def poses_cams(self):
         return model_poses(self.rec), model_cameras(self.rec)
@@ -85,6 +89,7 @@ def build_joint(ref_rec, blocks: dict[str, pycolmap.Reconstruction], clicks: dic
             slot[(tid, name)] = k
         ref_ids.add(b.add_image(name, cam_map[im.camera_id], im.cam_from_world(),
                                 np.array([xy for _, xy in per_image[name]])))
+    seq_cams: dict[str, set[int]] = {}
     for seq, rec in blocks.items():
         cam_map, id_map = {}, {}
         for iid, im in rec.images.items():
@@ -104,8 +109,9 @@ def build_joint(ref_rec, blocks: dict[str, pycolmap.Reconstruction], clicks: dic
                    if e.image_id in id_map]
             if len(els) >= 2:
                 b.rec.add_point3D(p.xyz, pycolmap.Track(els), p.color)
+        seq_cams[seq] = set(cam_map.values())
     clicks = {tid: {n: xy for n, xy in obs.items() if n in b.image_ids} for tid, obs in clicks.items()}
-    return Joint(b.rec, b.image_ids, ref_ids, slot, clicks)
+    return Joint(b.rec, b.image_ids, ref_ids, slot, clicks, seq_cams=seq_cams)
 
 
 def _max_px(tid: str, settings: RegisterSettings) -> float:
@@ -165,32 +171,33 @@ def _placed_by_reference(j: Joint, ties: dict[str, dict], settings: RegisterSett
     return out
 
 
-def _bundle_adjust(rec, ref_ids, settings: RegisterSettings, loss: str, covariance: bool = False):
+def _problem(rec, ref_ids, settings: RegisterSettings, loss: str, calibrated: set[int] = frozenset(),
+             held: set[int] = frozenset()):
+    """The joint model's bundle adjuster (not solved): the reference photos held, and ``held`` query
+    photos too; ``calibrated``: query cameras whose focal, principal point and distortion it refines
+    (else only with ``refine_query_intrinsics``, focal and distortion)."""
     cfg = pycolmap.BundleAdjustmentConfig()
     ref_cams = {rec.images[i].camera_id for i in ref_ids}
     for iid in rec.reg_image_ids():
         cfg.add_image(iid)
-    for iid in ref_ids:
+    for iid in set(ref_ids) | set(held):
         cfg.set_constant_rig_from_world_pose(rec.images[iid].frame_id)
     for cid in rec.cameras:
-        if cid in ref_cams or not settings.refine_query_intrinsics:
+        if cid in ref_cams or not (settings.refine_query_intrinsics or cid in calibrated):
             cfg.set_constant_cam_intrinsics(cid)
     opts = pycolmap.BundleAdjustmentOptions()
     opts.print_summary = False
-    opts.refine_principal_point = False
+    opts.refine_principal_point = bool(calibrated)
     opts.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss)
     opts.ceres.loss_function_scale = settings.ba_loss_scale_px
     opts.ceres.solver_options.max_num_iterations = settings.ba_max_iterations
     opts.ceres.solver_options.num_threads = ba_threads(settings.num_threads, settings.reproducible)
-    ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
-    summary = ba.solve()
-    cov = None
-    if covariance:
-        try:
-            cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, ba)
-        except Exception as e:  # noqa: BLE001 - covariance is optional output; the reason is logged
-            log.warning("BA covariance failed: %s", e)
-    return summary, cov
+    return pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
+
+
+def _bundle_adjust(rec, ref_ids, settings: RegisterSettings, loss: str, calibrated: set[int] = frozenset()):
+    """One BA of the joint model (:func:`_problem`); its Ceres summary."""
+    return _problem(rec, ref_ids, settings, loss, calibrated).solve()
 
 
 def _median_depth(rec, im) -> float:
@@ -214,9 +221,25 @@ def point_reprojection_errors(rec, point_ids) -> np.ndarray:
 
 
 
-def _adjust(ref_rec, blocks, statuses, clicks: dict, auto: set[str], settings: RegisterSettings):
+def ties_per_photo(j: Joint, seq: str, auto_only: bool = True) -> int:
+    """The median number of (automatic) tie points the photos of ``seq`` observe in the joint model now."""
+    counts = {n: 0 for n in j.image_ids if n.startswith(f"queries/{seq}/")}
+    for tid, pid in j.tie_pids.items():
+        if auto_only and not tid.startswith(AUTO_PREFIX):
+            continue
+        for e in j.rec.points3D[pid].track.elements:
+            n = j.rec.images[e.image_id].name
+            if n in counts:
+                counts[n] += 1
+    return int(np.median(list(counts.values()))) if counts else 0
+
+
+def _adjust(ref_rec, blocks, statuses, clicks: dict, auto: set[str], settings: RegisterSettings,
+            calibrate: set[str] = frozenset()):
     """The joint adjustment of the registered sequences (reference held) with the clicks and the
-    automatic ties in ``clicks``: passes a-c, the last with its covariance."""
+    automatic ties in ``clicks``: passes a-c, the last with its covariance. ``calibrate``: sequences
+    whose cameras are calibrated from the ties from pass b on, where their photos hold
+    ``calibrate_from_ties`` automatic ties each after pass a (``Joint.calibrated``)."""
     j = build_joint(ref_rec, blocks, clicks)
     # pass a: Sim(3) inliers and the automatic tie points (placed by their reference photos alone, so
     # the query poses move to what both say before any automatic tie is judged by its residual)
@@ -229,10 +252,16 @@ def _adjust(ref_rec, blocks, statuses, clicks: dict, auto: set[str], settings: R
     first.update(_placed_by_reference(j, {t: j.clicks[t] for t in auto if t in j.clicks}, settings))
     j.set_ties(first)
     _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
+    if settings.calibrate_from_ties > 0:
+        for q in sorted(calibrate):
+            if ties_per_photo(j, q) >= settings.calibrate_from_ties:
+                j.calibrated |= j.seq_cams.get(q, set())
+        if j.calibrated:   # the ties placed: the cameras first calibrated on them, then every tie re-judged
+            _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY", calibrated=j.calibrated)
     # pass b: every tie point re-triangulated from all its clicks with the refined poses
     use, dropped = retriangulate_ties(j, settings)
     j.set_ties(use)
-    _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
+    _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY", calibrated=j.calibrated)
     # pass c: drop what still disagrees, then the final least-squares BA (+ covariance)
     for tid, pid in list(j.tie_pids.items()):
         p = j.rec.points3D[pid]
@@ -250,5 +279,8 @@ def _adjust(ref_rec, blocks, statuses, clicks: dict, auto: set[str], settings: R
                     j.rec.delete_point3D(pid)
                     del j.tie_pids[tid]
                     break
-    summary, cov = _bundle_adjust(j.rec, j.ref_ids, settings, "TRIVIAL", covariance=True)
+    ba = _problem(j.rec, j.ref_ids, settings, "TRIVIAL", j.calibrated)
+    summary = ba.solve()
+    cov, j.undetermined = joint_covariance(
+        j, ba, lambda held: _problem(j.rec, j.ref_ids, settings, "TRIVIAL", j.calibrated, held))
     return j, summary, cov, dropped

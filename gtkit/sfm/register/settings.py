@@ -47,6 +47,16 @@ class BootstrapSettings:
 
 
 @dataclass
+class UnguidedSettings:
+    """``[register.unguided]``: sequences whose photos have no GPS and no attitude."""
+    enabled: bool = True
+    max_exhaustive: int = 60     # reference photos up to this many: each query photo matched with all
+    top_k: int = 12              # else with this many, ranked by visual words
+    words: int = 256             # visual words of the ranking's vocabulary (k-means over reference SIFT)
+    sample_per_photo: int = 500  # descriptors a photo contributes to the ranking
+
+
+@dataclass
 class RegisterSettings:
     tie_max_px: float = 4.0          # a click farther than this from its triangulated point is a mistake
     sim3_max_error_m: float = 1.5    # Sim(3) RANSAC inlier threshold, metres in the reference frame
@@ -57,7 +67,14 @@ class RegisterSettings:
     # the others are unbiased with a median of 0.6 px.
     ba_max_auto_px: float = 1.5
     ba_loss_scale_px: float = 2.0    # Cauchy loss scale of the first BA pass
-    refine_query_intrinsics: bool = False  # let the joint BA refine the query cameras' focal/distortion
+    refine_query_intrinsics: bool = False  # let the joint BA refine every query camera's focal/distortion
+    # A query camera its few-photo SfM had to calibrate itself (no cameras.txt, no reference calibration
+    # of the same camera: gtkit.sfm.block_cameras) is calibrated in the joint BA from the reference's 3D
+    # points its photos see (focal, principal point, distortion; the BA's covariance then holds the
+    # calibration's uncertainty) where they hold this many automatic ties a photo (median); 0: never.
+    # Issue 55, entry-P10 held out with RTK positions: self-calibrated from 3 photos 92 mm (principal
+    # point 22 px off), calibrated from 563 ties 16 mm, the reference's calibration 11 mm
+    calibrate_from_ties: int = 50
     min_tiepoints: int = 3
     ba_max_iterations: int = 100
     num_threads: int = 2
@@ -91,6 +108,9 @@ class RegisterSettings:
     guidance: GuidanceSettings = field(default_factory=GuidanceSettings)
     # sequences without enough usable clicks: placed by automatic matches to the reference points
     bootstrap: BootstrapSettings = field(default_factory=BootstrapSettings)
+    # sequences whose photos have no GPS and no attitude: matched with the reference photos (all, or
+    # those ranked first by visual words) and registered into the reference block
+    unguided: UnguidedSettings = field(default_factory=UnguidedSettings)
     # photos placed on their own (left out by their sequence's SfM): registered into the reference
     # block by keypoint matches with the reference photos, its points joining as automatic ties
     extend: ExtendSettings = field(default_factory=ExtendSettings)
