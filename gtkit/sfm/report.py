@@ -65,7 +65,7 @@ def collect(project: Project) -> dict:
     if reg:
         est = read_poses(P.poses(REGISTER_STAGE)) if P.poses(REGISTER_STAGE).is_file() else {}
         rep.update({k: reg.get(k) for k in ("median_reproj_px", "mean_reproj_px", "median_tiepoint_reproj_px",
-                                             "n_registered", "n_images", "sequences", "bad_tiepoints",
+                                             "n_registered", "n_unverified", "n_images", "sequences", "bad_tiepoints",
                                              "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba")})
         rep["per_image"] = {n: dict(v) for n, v in reg.get("images", {}).items()}
         rep["sequences_needing_clicks"] = {q: s.get("error") for q, s in record.sequences(reg).items()
@@ -77,7 +77,7 @@ def collect(project: Project) -> dict:
     names = sorted(set(rep["per_image"]) | {n for b in qsum.values() for n in (b.get("unregistered") or {})})
     for n in names:
         rep["per_image"].setdefault(n, {"registered": False})
-        rep["per_image"][n]["registered"] = n in est
+        rep["per_image"][n]["registered"] = n in est and "unverified" not in rep["per_image"][n]
         if n in review:
             rep["per_image"][n]["review"] = review[n]
     if review:
@@ -113,7 +113,10 @@ def scene_links(folder: Path) -> list[str]:
 def _markdown(rep: dict, folder: Path, checks: dict) -> str:
     L = [f"# Pseudo-GT report: {rep['project']}", ""]
     L += ["| figure | value |", "|---|---|",
-          f"| query photos registered | {rep['n_registered']} / {rep['n_images']} |",
+          f"| query photos registered (a pose with its sigma) | {rep['n_registered']} / {rep['n_images']} |"]
+    if rep.get("n_unverified"):
+        L.append(f"| query photos UNVERIFIED (a pose without sigma: not a result) | {rep['n_unverified']} |")
+    L += [
           f"| median reprojection error (SfM points, joint BA) | {_fmt(rep.get('median_reproj_px'), 2)} px |",
           f"| median tie-point reprojection error | {_fmt(rep.get('median_tiepoint_reproj_px'), 2)} px |",
           f"| clicked / automatic tie points in the joint BA | {rep.get('n_tiepoints_in_ba', 0)} / "
@@ -146,6 +149,11 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
               "Their photos' metadata and automatic matches could not place them; click tie points there "
               "(`gtkit annotate DIR`) and run `gtkit register DIR` again.", ""]
         L += [f"- **{seq}**: {why}" for seq, why in need.items()]
+    unver = {n: e["unverified"] for n, e in (rep.get("per_image") or {}).items() if e.get("unverified")}
+    if unver:
+        L += ["", "## Unverified photos", "", "A pose without a sigma is not a result: these photos are left out of "
+              "the exports' ground truth.", ""]
+        L += [f"- {n}: {why}" for n, why in sorted(unver.items())]
     L += ["", "## Sequences", ""]
     for seq, s in (rep.get("sequences") or {}).items():
         L.append(f"- **{seq}**: " + record.describe(s))
@@ -176,7 +184,8 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
               + "review |", "|---|---|---|---|" + "---|" * len(cols) + "---|"]
         for n in names:
             e = per[n]
-            L.append(f"| {n} | {'yes' if e.get('registered') else 'NO'} | {_fmt(e.get('sigma_pos_m'))} | "
+            said = 'yes' if e.get('registered') else ('unverified' if e.get('unverified') else 'NO')
+            L.append(f"| {n} | {said} | {_fmt(e.get('sigma_pos_m'))} | "
                      f"{_fmt(e.get('sigma_rot_deg'))} | " + "".join(f"{_fmt(e.get(k))} | " for k, _h in cols)
                      + f"{e.get('review', '')} |")
     L += scene_links(folder)

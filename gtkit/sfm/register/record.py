@@ -87,7 +87,9 @@ def joint_record(j: Joint, summary, per_image: dict, tie_rows: dict, bad: dict, 
     sfm_err = point_reprojection_errors(rec, [p for p in rec.points3D if p not in tie_set])
     tie_err = [r for row in tie_rows.values() for r in row.get("reproj_px", {}).values()]
     return {
-        "n_registered": len(per_image), "images": per_image,
+        # registered: a pose with its sigma; unverified: a pose the BA could not give a sigma (not a result)
+        "n_registered": sum(1 for i in per_image.values() if "unverified" not in i),
+        "n_unverified": sum(1 for i in per_image.values() if "unverified" in i), "images": per_image,
         "median_reproj_px": float(np.median(sfm_err)) if len(sfm_err) else None,
         "mean_reproj_px": float(np.mean(sfm_err)) if len(sfm_err) else None,
         "median_tiepoint_reproj_px": float(np.median(tie_err)) if tie_err else None,

@@ -121,5 +121,7 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
             info["sigma_rot_deg"] = float(np.degrees(np.sqrt(np.trace(pose.covariance[:3, :3]))))
             info["sigma_pos_ba_m"] = sigma_ba   # the final BA's alone, without the terms added
             info["sigma_terms"] = terms
+        else:   # a pose without sigma is not a result: kept, but unverified (issue 55)
+            info["unverified"] = j.undetermined.get(seq) or "the final BA gave this photo no covariance"
         per_image[im.name] = info
     return poses, cams, covs, per_image, floors
