@@ -77,33 +77,25 @@ def _copy_features(src: Path, names: list[str], dst: pycolmap.Database, ids: dic
             dst.write_descriptors(ids[n], db.read_descriptors(im.image_id))
 
 
-def extension_ties(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str, tuple[Pose, Camera, Path]],
-                   image_root: Path, work: Path, settings: ExtendSettings, match: MatchSettings | None = None,
-                   num_threads: int = 2, seed: int = 0, reproducible: bool = True
-                   ) -> tuple[dict[str, dict[str, tuple[float, float]]], dict]:
-    """({tie id: {image: (x, y)}}, {photo: record}) for ``photos`` ({name: (resected pose, camera,
-    its sequence's feature database)}); see the module doc. A photo the mapper does not register
-    into the reference block gets no tie points here (its record says so) and keeps the ones it had."""
-    photos = {n: v for n, v in photos.items() if Path(v[2]).is_file()}
-    if not photos or not Path(ref_db).is_file() or ref_rec.num_points3D() == 0:
-        return {}, {}
+def register_into_reference(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str, tuple[Camera, Path]],
+                            pairs: list[tuple[str, str]], image_root: Path, work: Path, match: MatchSettings | None = None,
+                            num_threads: int = 2, seed: int = 0, reproducible: bool = True
+                            ) -> pycolmap.Reconstruction | None:
+    """The reference block with ``photos`` ({name: (camera, its sequence's feature database)}) registered
+    into it by COLMAP's mapper, the reference poses held (``fix_existing_frames``), after matching the
+    name ``pairs`` (keypoint to keypoint; features copied, not extracted again); None where the mapper
+    made nothing. Works on a copy of the reference database in ``work`` (emptied first)."""
     work = Path(work)
     if work.exists():
         shutil.rmtree(work)
     work.mkdir(parents=True)
     db_path = work / "database.db"
     shutil.copy(ref_db, db_path)
-    ground_z = float(np.median([p.xyz[2] for p in ref_rec.points3D.values()]))
     names = sorted(photos)
-    pairs = []
-    for n in names:
-        pairs += [(n, r) for r in neighbour_views(photos[n][0], ref_rec, settings.neighbours, ground_z)]
-    pairs += [(a, b) for i, a in enumerate(names) for b in names[i + 1:]
-              if a.split("/")[:2] == b.split("/")[:2]]   # photos of one sequence with each other
     with pycolmap.Database.open(db_path) as db:
         cam_ids: dict[tuple, int] = {}
         for n in names:
-            cam = photos[n][1]
+            cam = photos[n][0]
             key = (cam.model, cam.width, cam.height, tuple(np.round(cam.params, 6)))
             if key not in cam_ids:
                 pc = cam.to_pycolmap()
@@ -111,7 +103,7 @@ def extension_ties(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[
                 cam_ids[key] = db.write_camera(pc)
     by_cam: dict[int, list[str]] = {}
     for n in names:
-        cam = photos[n][1]
+        cam = photos[n][0]
         by_cam.setdefault(cam_ids[(cam.model, cam.width, cam.height, tuple(np.round(cam.params, 6)))], []).append(n)
     for cid, group in by_cam.items():
         ro = pycolmap.ImageReaderOptions()
@@ -122,7 +114,7 @@ def extension_ties(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[
         ids = {im.name: im.image_id for im in db.read_all_images()}
         by_db: dict[Path, list[str]] = {}
         for n in names:
-            by_db.setdefault(Path(photos[n][2]), []).append(n)
+            by_db.setdefault(Path(photos[n][1]), []).append(n)
         for src, group in by_db.items():
             _copy_features(src, group, db, ids)
     match_pairs(db_path, pairs, match or MatchSettings(num_threads=num_threads), work)
@@ -138,10 +130,31 @@ def extension_ties(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[
     opts.min_model_size = 1
     single_thread_mapper(opts, reproducible)     # its RANSACs and BAs on one thread: gtkit.determinism
     models = pycolmap.incremental_mapping(db_path, image_root, work / "mapper", options=opts, input_path=model_in)
+    return max(models.values(), key=lambda r: r.num_reg_images()) if models else None
+
+
+def extension_ties(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str, tuple[Pose, Camera, Path]],
+                   image_root: Path, work: Path, settings: ExtendSettings, match: MatchSettings | None = None,
+                   num_threads: int = 2, seed: int = 0, reproducible: bool = True
+                   ) -> tuple[dict[str, dict[str, tuple[float, float]]], dict]:
+    """({tie id: {image: (x, y)}}, {photo: record}) for ``photos`` ({name: (resected pose, camera,
+    its sequence's feature database)}); see the module doc. A photo the mapper does not register
+    into the reference block gets no tie points here (its record says so) and keeps the ones it had."""
+    photos = {n: v for n, v in photos.items() if Path(v[2]).is_file()}
+    if not photos or not Path(ref_db).is_file() or ref_rec.num_points3D() == 0:
+        return {}, {}
+    ground_z = float(np.median([p.xyz[2] for p in ref_rec.points3D.values()]))
+    names = sorted(photos)
+    pairs = []
+    for n in names:
+        pairs += [(n, r) for r in neighbour_views(photos[n][0], ref_rec, settings.neighbours, ground_z)]
+    pairs += [(a, b) for i, a in enumerate(names) for b in names[i + 1:]
+              if a.split("/")[:2] == b.split("/")[:2]]   # photos of one sequence with each other
+    rec = register_into_reference(ref_rec, ref_db, {n: (v[1], v[2]) for n, v in photos.items()}, pairs, image_root,
+                                  work, match, num_threads, seed, reproducible)
     records = {n: {"registered": False, "n_ties": 0} for n in names}
-    if not models:
+    if rec is None:
         return {}, records
-    rec = max(models.values(), key=lambda r: r.num_reg_images())
     wanted = set(names)
     rng = np.random.default_rng(seed)
     per_photo: dict[str, list[int]] = {}

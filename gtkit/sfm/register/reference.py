@@ -22,6 +22,7 @@ from ..resect import candidate_priors
 from .bootstrap import Bootstrap, bootstrap_sequence
 from .clicked import _place
 from .settings import RegisterSettings
+from .unguided import place_unguided
 
 
 def _block_georegistered(block_json: Path) -> bool:
@@ -166,6 +167,10 @@ class ReferenceBlock:
             return Bootstrap(None, "its sequence's feature database is missing", {})
         georegistered = _block_georegistered(sdir / "block.json")
         cams = model_cameras(qrec)
+        names = [im.name for im in qrec.images.values() if im.has_pose]
+        if not georegistered and not any(self.positions.prior_pose(n) is not None or self.gps_centre(n) is not None
+                                         for n in names):   # nothing to guide a match: every reference photo
+            return place_unguided(self, seq, qrec, db, settings)
 
         def priors(name):
             out = []

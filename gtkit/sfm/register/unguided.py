@@ -1,0 +1,122 @@
+"""A sequence without metadata (no GPS, no attitude: photos from another camera or a phone, stripped
+photos) placed without clicks: each photo matched keypoint to keypoint with the reference photos
+that look like it, registered into the reference block by COLMAP's mapper with the reference poses
+held (:func:`gtkit.sfm.extend_reference.register_into_reference`: what one SfM of all the photos
+does for them), then the sequence placed by the Sim(3) those photos agree on
+(:func:`gtkit.sfm.register.bootstrap.bootstrap_sequence`, its matches given).
+
+Which reference photos: all of them where the block has at most ``max_exhaustive`` photos, else
+the ``top_k`` a bag of visual words over their SIFT descriptors ranks first for each query photo
+(:func:`rank_reference_photos`). Issue 55: before this, every such sequence was refused and asked
+for clicks, where one SfM of all photos registers it at 4-14 mm.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from ...pose import Pose
+from ..crossmatch import photo_features
+from ..extend_reference import register_into_reference
+from .bootstrap import Bootstrap, bootstrap_sequence
+
+log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
+
+
+def _words(desc: np.ndarray, vocab: np.ndarray) -> np.ndarray:
+    d2 = (desc ** 2).sum(1)[:, None] - 2 * desc @ vocab.T + (vocab ** 2).sum(1)[None]
+    return np.argmin(d2, axis=1)
+
+
+def rank_reference_photos(query: dict[str, np.ndarray], reference: dict[str, np.ndarray], k: int, n_words: int,
+                          per_photo: int, seed: int = 0) -> dict[str, list[str]]:
+    """{query photo: the ``k`` reference photos most alike}, by tf-idf histograms of visual words (a
+    vocabulary of ``n_words`` k-means centres over up to ``per_photo`` descriptors a reference photo)."""
+    from scipy.cluster.vq import kmeans2
+
+    rng = np.random.default_rng(seed)
+
+    def sample(d):
+        return d[rng.choice(len(d), per_photo, replace=False)] if len(d) > per_photo else d
+
+    ref_names = sorted(reference)
+    pool = np.vstack([sample(reference[n]) for n in ref_names]).astype(np.float32)
+    vocab, _ = kmeans2(pool, min(n_words, len(pool)), seed=seed, minit="++", iter=10)
+
+    def hist(d):
+        return np.bincount(_words(sample(d).astype(np.float32), vocab), minlength=len(vocab)).astype(float)
+
+    R = np.array([hist(reference[n]) for n in ref_names])
+    idf = np.log(len(R) / (1.0 + (R > 0).sum(0)))
+    Rn = R * idf
+    Rn /= np.linalg.norm(Rn, axis=1, keepdims=True) + 1e-12
+    out = {}
+    for q, d in query.items():
+        h = hist(d) * idf
+        s = Rn @ (h / (np.linalg.norm(h) + 1e-12))
+        out[q] = [ref_names[i] for i in np.argsort(-s)[:k]]
+    return out
+
+
+def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, settings) -> Bootstrap:
+    """The sequence (its block ``qrec``, its feature database ``db``) placed in the reference block
+    ``ref`` (:class:`gtkit.sfm.register.reference.ReferenceBlock`) without any metadata."""
+    u = settings.unguided
+    names = sorted(im.name for im in qrec.images.values() if im.has_pose)
+    refs = sorted(im.name for im in ref.rec.images.values() if im.has_pose)
+    if not u.enabled:
+        return Bootstrap(None, "its photos have no GPS and no attitude, and matching them to every reference "
+                               "photo is off ([register.unguided] enabled)", {})
+    if len(refs) <= u.max_exhaustive:
+        near = {n: refs for n in names}
+        how = f"all {len(refs)} reference photos"
+    else:
+        feats = {n: photo_features(db, n) for n in names}
+        ref_feats = {}
+        with pycolmap.Database.open(ref.db) as d:
+            for r in refs:
+                de = d.read_descriptors(d.read_image_with_name(r).image_id)
+                ref_feats[r] = np.asarray(de.data if hasattr(de, "data") else de, np.float32)
+        near = rank_reference_photos({n: f[1] for n, f in feats.items() if f is not None}, ref_feats, u.top_k,
+                                     u.words, u.sample_per_photo)
+        how = f"the {u.top_k} of {len(refs)} reference photos ranked first by visual words"
+    pairs = [(n, r) for n in names for r in near.get(n, [])]
+    pairs += [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    cams = {n: qrec.cameras[qrec.find_image_with_name(n).camera_id] for n in names}
+    from ...camera import Camera
+
+    ext = register_into_reference(ref.rec, ref.db, {n: (Camera.from_pycolmap(cams[n]), db) for n in names}, pairs,
+                                  ref.P.images, ref.P.stage("register") / "unguided" / seq,
+                                  num_threads=settings.num_threads, reproducible=settings.reproducible)
+    found: dict[str, tuple[Pose, np.ndarray, np.ndarray]] = {}
+    if ext is not None:
+        for n in names:
+            im = ext.find_image_with_name(n)
+            if im is None or not im.has_pose:
+                continue
+            X, kk = [], []
+            for k, p in enumerate(im.points2D):
+                if p.has_point3D() and any(ext.images[e.image_id].name.startswith("reference/")
+                                           for e in ext.points3D[p.point3D_id].track.elements):
+                    X.append(ext.points3D[p.point3D_id].xyz)
+                    kk.append(k)
+            if len(kk) >= settings.cross.min_inliers:
+                found[n] = (Pose.from_pycolmap(im.cam_from_world()), np.array(X).reshape(-1, 3), np.array(kk, int))
+    log.info("sequence %s (no GPS, no attitude): %d of %d photos registered into the reference block by keypoint "
+             "matches with %s", seq, len(found), len(names), how)
+
+    def priors(name):
+        return [(f"keypoint matches with {how}", found[name][0])] if name in found else []
+
+    def match(name, prior, wider=True):
+        return found[name] if name in found else (None, np.zeros((0, 3)), np.zeros(0, int))
+
+    out = bootstrap_sequence(qrec, priors, match, settings)
+    for n, r in out.photos.items():
+        if n not in found and "reason" in r:
+            r["reason"] = (f"no GPS and no attitude, and fewer than {settings.cross.min_inliers} keypoint matches "
+                           f"registered it into the reference block ({how})")
+    return out
