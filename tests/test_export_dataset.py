@@ -172,7 +172,7 @@ def test_unverified_refused_and_unregistered_photos_are_kept_out_and_listed(expo
         assert not any(n in body for n in kept), f
     md = (exported / "DATASET.md").read_text()
     assert "## Evaluation protocol" in md and "(1 m, 1°) 6 of 7" in md
-    assert (exported / "plots" / "trajectories.png").stat().st_size > 10_000
+    assert (exported / "plots" / "trajectories.jpg").stat().st_size > 10_000
     assert (exported / "plots" / "sigma.png").stat().st_size > 10_000
 
 
@@ -250,6 +250,19 @@ def test_a_failed_export_leaves_the_previous_dataset_whole(site, exported, monke
         run(site, out, DatasetSettings(formats=("hloc", "colmap")))
     assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
     assert not list(tmp_path.glob(".*partial*"))
+
+
+def test_without_depth_the_mapping_has_the_views_alone(site, tmp_path):
+    import kapture
+    import kapture.io.csv as kcsv
+
+    out = tmp_path / "nodepth"
+    assert gtkit(["export", "dataset", str(site), str(out), "--format", "kapture", "--no-depth"]) == 0
+    m = kcsv.kapture_from_dir(str(out / "kapture" / "mapping"))
+    assert m.records_depth is None and "render_depth" not in m.sensors
+    assert sum(1 for _ in kapture.flatten(m.records_camera)) > 0
+    assert not list(out.rglob("*.depth")) and not (out / "hloc").exists() and not (out / "colmap").exists()
+    assert json.loads((out / "dataset.json").read_text())["parts"]["kapture_mapping"]["n_depth_maps"] == 0
 
 
 def test_protocol_thresholds_are_the_localization_reports():

@@ -8,7 +8,7 @@ Examples::
     gtkit export ortho site [--resolution 0.1]
     gtkit export mesh site --format glb [--decimate 200000]
     gtkit export coords site [--poses work/register/poses.txt] [--targets exports/tracks.csv]
-    gtkit export dataset site OUT [--format kapture,colmap,hloc] [--copy] [--with-model]
+    gtkit export dataset site OUT [--format kapture,colmap,hloc] [--copy] [--with-model] [--no-depth]
 """
 from __future__ import annotations
 
@@ -75,6 +75,8 @@ def register(sub):
                    help="comma-separated formats to write (default kapture,colmap,hloc)")
     s.add_argument("--copy", action="store_true", help="copy the photos instead of linking them")
     s.add_argument("--with-model", action="store_true", help="add the reference model and the DSM")
+    s.add_argument("--no-depth", action="store_true", help="leave the rendered views' depth maps out of "
+                   "kapture/mapping (float32, 1.2 MB a 640x480 view)")
     s.set_defaults(func=run_dataset)
 
 
@@ -146,7 +148,7 @@ def run_dataset(args):
     from ..dataset.stage import DatasetSettings, run
 
     info = run(args.project, args.out, DatasetSettings(formats=tuple(args.format.split(",")), copy=args.copy,
-                                                       with_model=args.with_model))
+                                                       with_model=args.with_model, depth=not args.no_depth))
     if info["status"] == "up to date":
         print(f"{info['out']}: up to date (nothing written)")
     else:

@@ -133,7 +133,8 @@ def markdown(d: dict, gt: PublishedGT) -> str:
     m = parts.get("kapture_mapping") or {}
     if m:
         L.append(f"- mapping: {m.get('n_reference_photos', 0)} reference photos, {m.get('n_rendered_views', 0)} "
-                 f"rendered database views with depth" + (f" (`{m['render_camera']}`)" if m.get("render_camera") else ""))
+                 f"rendered database views, {m.get('n_depth_maps', 0)} depth maps"
+                 + (f" (`{m['render_camera']}`)" if m.get("render_camera") else ""))
     L += ["", "## How the pseudo-GT was made", "",
           f"- Reference block: {ref.get('n_registered', '–')} / {ref.get('n_images', '–')} photos, "
           f"mean reprojection {_fmt(ref.get('mean_reproj_px'), 2, ' px')}; georegistration by "
@@ -153,7 +154,7 @@ def markdown(d: dict, gt: PublishedGT) -> str:
           "| | median | 90th percentile | max |", "|---|---|---|---|",
           f"| position sigma (1-sigma radius) | {_fmt(sp.get('median'))} m | {_fmt(sp.get('p90'))} m | {_fmt(sp.get('max'))} m |",
           f"| rotation sigma | {_fmt(sr.get('median'))}° | {_fmt(sr.get('p90'))}° | {_fmt(sr.get('max'))}° |", "",
-          "![trajectories](plots/trajectories.png)  ![sigma per photo](plots/sigma.png)", "",
+          "![trajectories](plots/trajectories.jpg)  ![sigma per photo](plots/sigma.png)", "",
           "## Evaluation protocol", "",
           "Recall at (1 m, 1°), (3 m, 3°), (5 m, 5°) over the published photos (a photo a method does not "
           "localize fails), and the median position and rotation errors. Sigma-aware: "
@@ -196,7 +197,7 @@ def _present(p: str, parts: dict) -> bool:
 
 
 def plots(out: Path, project: Project, gt: PublishedGT) -> list[Path]:
-    """``plots/trajectories.png`` (over ``exports/ortho.tif`` where there is one) and ``plots/sigma.png``."""
+    """``plots/trajectories.jpg`` (over ``exports/ortho.tif`` where there is one) and ``plots/sigma.png``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -226,9 +227,9 @@ def plots(out: Path, project: Project, gt: PublishedGT) -> list[Path]:
     ax.legend(fontsize=8)
     ax.set_title("pseudo-GT query trajectories" + (" over the orthophoto" if project.paths.ortho.is_file() else ""))
     fig.tight_layout()
-    paths = [d / "trajectories.png"]
+    paths = [d / "trajectories.jpg"]
     with atomic_path(paths[0]) as tmp:
-        fig.savefig(tmp, dpi=110)
+        fig.savefig(tmp, dpi=110, pil_kwargs={"quality": 85})
     plt.close(fig)
     fig, (a1, a2) = plt.subplots(2, 1, figsize=(max(7, 0.12 * len(names)), 5.5), sharex=True)
     x = np.arange(len(names))

@@ -16,7 +16,8 @@
 ``kapture/mapping/``
     the reference photos (``ref``, ``ref_01`` ...) with their SfM poses, and the rendered database
     views (``render`` camera; ``render_depth``: their depth maps as kapture ``.depth`` float32 files,
-    metres along the optical axis, 0 where the view sees no surface), with the views' poses.
+    metres along the optical axis, 0 where the view sees no surface; ``--no-depth``: none), with the
+    views' poses.
 
 Timestamps: microseconds of the EXIF capture time (read as UTC) where every photo states one
 (a photo sharing its camera and second with another is moved by 1 us), else the photo's index in
@@ -190,8 +191,9 @@ def _write_priors(out: Path, project: Project, names: list[str], sensors, cam_id
     return {"folder": str(part.relative_to(out)), "n_photos": len(priors)}
 
 
-def write_mapping(out: Path, project: Project, copy: bool) -> dict:
-    """``kapture/mapping``: the reference photos and the rendered database (see the module doc)."""
+def write_mapping(out: Path, project: Project, copy: bool, depth: bool = True) -> dict:
+    """``kapture/mapping``: the reference photos and the rendered database (see the module doc);
+    without ``depth``, the views without their depth maps."""
     kapture = _kapture()
     P = project.paths
     part = out / KAPTURE / "mapping"
@@ -217,18 +219,21 @@ def write_mapping(out: Path, project: Project, copy: bool) -> dict:
 
         cam, dbviews = views
         sensors["render"] = _camera_sensor(kapture, cam, "render-db view")
-        sensors["render_depth"] = _camera_sensor(kapture, cam, "render-db depth", sensor_type="depth")
+        if depth:
+            sensors["render_depth"] = _camera_sensor(kapture, cam, "render-db depth", sensor_type="depth")
         for i, v in enumerate(dbviews):
             rgb, dep = f"render_db/{v.name}.jpg", f"render_db/{v.name}.depth"
             traj[i, "render"] = _pose(kapture, v.pose)
-            traj[i, "render_depth"] = _pose(kapture, v.pose)
             records[i, "render"] = rgb
-            depths[i, "render_depth"] = dep
             files.append((v.image, _records_dir(part) / rgb))
+            if not depth:
+                continue
+            traj[i, "render_depth"] = _pose(kapture, v.pose)
+            depths[i, "render_depth"] = dep
             d = read_depth(v.depth_path)
             d = np.zeros((cam.height, cam.width), np.float32) if d is None else np.nan_to_num(d.astype(np.float32), nan=0.0)
             kapture.io.records.depth_map_to_file(str(_records_dir(part) / dep), d)
-        info.update(n_rendered_views=len(dbviews), render_camera=cam.to_line())
+        info.update(n_rendered_views=len(dbviews), n_depth_maps=len(dbviews) if depth else 0, render_camera=cam.to_line())
     if not len(sensors):
         return {}
     kapture.io.csv.kapture_to_dir(str(part), kapture.Kapture(
