@@ -53,7 +53,9 @@ def fake_pseudo_gt(root: Path) -> dict[str, Pose]:
     covs = {n: np.diag([(2e-4) ** 2] * 3 + [0.03 ** 2] * 3) for n in wide if n != UNVERIFIED}
     covs[VAGUE] = np.diag([(2e-4) ** 2] * 3 + [1.0] * 3)
     write_covariances(d / "covariances.txt", covs)
-    write_json(d / "registration.json", {"n_registered": len(wide), "images": {n: {"sequence": n.split("/")[1]} for n in wide},
+    images = {n: {"sequence": n.split("/")[1]} for n in wide}
+    images[UNVERIFIED]["unverified"] = "its sequence's BA is undetermined (test)"   # as gtkit register says it
+    write_json(d / "registration.json", {"n_registered": len(wide) - 1, "n_unverified": 1, "images": images,
                                          "sequences": {q: {"status": "registered", "registered_by": "automatic matches"}
                                                        for q in ("seq1", "seq2", "seq3")}})
     write_json(root / "review.json", {"format": "gtkit-review", "version": 1, "images": {REFUSED: {"status": "reject"}}})
@@ -163,6 +165,7 @@ def test_unverified_refused_and_unregistered_photos_are_kept_out_and_listed(expo
     kept = read_kept_out(exported / "kept_out.txt")
     assert {n: k for n, (k, _why) in kept.items()} == {UNVERIFIED: "unverified", REFUSED: "refused",
                                                        NOT_REGISTERED: "not registered"}
+    assert "its sequence's BA is undetermined (test)" in kept[UNVERIFIED][1]
     sheet = json.loads((exported / "dataset.json").read_text())
     assert sheet["pseudo_gt"]["n_published"] == 7 and sheet["pseudo_gt"]["n_kept_out"] == 3
     assert sheet["pseudo_gt"]["photos_that_can_judge"] == {"1m1deg": 6, "3m3deg": 6, "5m5deg": 7}

@@ -61,7 +61,7 @@ def provenance(project: Project) -> dict:
     return {
         "reference_block": ref,
         "registration": {
-            **{k: reg.get(k) for k in ("n_registered", "median_reproj_px", "median_tiepoint_reproj_px",
+            **{k: reg.get(k) for k in ("n_registered", "n_unverified", "median_reproj_px", "median_tiepoint_reproj_px",
                                        "median_auto_tiepoint_reproj_px", "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba",
                                        "ba_final_cost") if reg.get(k) is not None},
             "sequences": {q: {"outcome": record.outcome(s), "how": record.describe(s)} for q, s in sorted(seqs.items())},

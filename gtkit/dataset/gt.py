@@ -64,8 +64,9 @@ def _flagged_unverified(info: dict | None) -> str | None:
     registration may or may not write them)."""
     if not isinstance(info, dict):
         return None
-    if info.get("unverified") or info.get("verified") is False or info.get("status") == UNVERIFIED:
-        why = info.get("unverified_reason") or info.get("reason")
+    flag = info.get("unverified")         # gtkit register writes the reason there (issue 55)
+    if flag or info.get("verified") is False or info.get("status") == UNVERIFIED:
+        why = flag if isinstance(flag, str) and flag else info.get("reason")
         return f"flagged unverified by the registration{f' ({why})' if isinstance(why, str) and why else ''}"
     return None
 
