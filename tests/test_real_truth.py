@@ -1,0 +1,73 @@
+"""Pseudo-GT held to independent truth on real photos (issue 55): the shared fountain-P11 set (11
+terrestrial photos, 3072 x 2048, no EXIF, camera poses surveyed independently of any SfM), held out
+as ``../shared/tools/truth_split.py`` makes it (two photos in three the reference with their
+surveyed centres, every third a query sequence with RTK-like positions: 2 cm noise), then
+``gtkit init`` + ``gtkit run --until report`` as a user runs them, defaults, no clicks, and the
+shared tool's own judgement of the poses and sigma against the truth.
+
+Asserted (the issue's done-when): every query photo registered has a sigma, at least 90 % lie within
+2 sigma of the truth, and the query median is no worse than one plain SfM of all 11 photos with
+positions for the reference only (the anchor, benchmarks/bench_real_truth.py: 4.0 mm median) within
+its run-to-run spread (a few mm). Measured with the code of this change: 3.8-4.9 mm median, 4 of 4
+within 2 sigma (benchmarks/bench_real_truth.py, docs/benchmarks.md "Real photos with independent
+truth"). About 40 s on 2 idle cores. Without positions and with the calibrated K: the benchmark,
+and behind GTKIT_SLOW=1 here.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, SHARED
+
+TRUTH_SPLIT = SHARED / "tools" / "truth_split.py"
+FOUNTAIN = SHARED / "data" / "real_truth" / "fountain-P11"
+pytestmark = pytest.mark.skipif(not (FOUNTAIN / "images").is_dir() or not TRUTH_SPLIT.is_file(),
+                                reason="shared real-truth set or truth_split.py not available")
+ANCHOR_MEDIAN_M = 0.0040     # one SfM of all photos, reference positions only (issue 55's table)
+ANCHOR_SPREAD_M = 0.0020     # "within the anchor's own run-to-run spread, a few mm"
+
+
+def _held_out(tmp: Path, *extra: str) -> dict:
+    """truth_split make + gtkit init + gtkit run --until report; the eval's summary as a dict."""
+    out = tmp / "split"
+    made = subprocess.run([sys.executable, str(TRUTH_SPLIT), "make", str(FOUNTAIN), str(out), *extra],
+                          capture_output=True, text=True, check=True)
+    init = made.stdout.strip().splitlines()[-1].split()[1:]     # "gtkit init PROJECT --reference ..."
+    gtkit = [sys.executable, "-m", "gtkit.cli"]
+    subprocess.run(gtkit + init, check=True, capture_output=True, cwd=ROOT)
+    project = init[1]
+    run = subprocess.run(gtkit + ["run", project, "--until", "report"], capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    ev = subprocess.run([sys.executable, str(TRUTH_SPLIT), "eval", str(FOUNTAIN), project],
+                        capture_output=True, text=True, check=True).stdout
+    f = ev.strip().splitlines()[-1].split()
+    assert f[0] == "summary", ev
+    return {"n": int(f[1]), "median_m": float(f[2]), "worst_m": float(f[4]), "n_sigma": int(f[5]),
+            "within_2sigma": float(f[6]), "ref_median_m": float(f[7]), "text": ev, "run": run.stdout}
+
+
+def _check(s: dict, n_held: int) -> None:
+    assert s["n"] == n_held, s["text"]                                  # every held-out photo registered
+    assert s["n_sigma"] == s["n"], s["text"]                            # ... each with a sigma
+    assert s["within_2sigma"] >= 0.9, s["text"]
+    assert s["median_m"] <= ANCHOR_MEDIAN_M + ANCHOR_SPREAD_M, s["text"]
+    assert "unverified" not in s["run"].lower(), s["run"]
+
+
+def test_fountain_held_out_with_rtk_positions(tmp_path):
+    _check(_held_out(tmp_path, "--query-positions", "0.02"), 4)
+
+
+@pytest.mark.skipif(os.environ.get("GTKIT_SLOW") != "1", reason="GTKIT_SLOW=1: the other cases of the benchmark")
+@pytest.mark.parametrize("extra", [(), ("--known-intrinsics", "--query-positions", "0.02")],
+                         ids=["no-metadata", "known-K-rtk"])
+def test_fountain_held_out_other_cases(tmp_path, extra):
+    s = _held_out(tmp_path, *extra)
+    _check(s, 4)
+    if "--known-intrinsics" in extra:     # with the calibrated K: within 1.5 x the reference block's own median
+        assert s["median_m"] <= 1.5 * s["ref_median_m"], s["text"]
