@@ -186,26 +186,18 @@ def detect_pose_kind(source: Path) -> str:
 def exported_dataset(source: Path) -> Path | None:
     """The ``gtkit export dataset`` folder that holds ``source`` (its hloc file, COLMAP model or kapture
     folder: ``dataset.json`` up to three levels up), or None."""
-    import json
+    from .dataset.folder import read_sheet
 
-    for d in list(Path(source).absolute().parents)[:3]:
-        f = d / "dataset.json"
-        if f.is_file():
-            try:
-                return d if json.loads(f.read_text(encoding="utf-8")).get("format") == "gtkit-dataset" else None
-            except (OSError, ValueError, AttributeError):
-                return None
-    return None
+    return next((d for d in list(Path(source).absolute().parents)[:3] if read_sheet(d) is not None), None)
 
 
 def check_dataset_frame(dataset: Path, frame) -> None:
     """A dataset exported in another frame than ``frame`` is refused in one line."""
-    import json
-
+    from .dataset.folder import SHEET_JSON, read_sheet
     from .geo import parse_crs
 
-    f = dataset / "dataset.json"
-    site = json.loads(f.read_text(encoding="utf-8")).get("site") or {}
+    f = dataset / SHEET_JSON
+    site = (read_sheet(dataset) or {}).get("site") or {}
     if not parse_crs(site.get("crs"), f).equals(frame.crs) or not np.allclose(site.get("origin"), frame.origin, atol=1e-9):
         raise GtkitError(f"the dataset's frame {site.get('crs')} {site.get('origin')} differs from the project's "
                          f"{frame.crs_spec} {list(frame.origin)}", f)

@@ -98,5 +98,7 @@ def run_results(args):
           f"{100 * rep['recall_1m1deg']:.1f} / {100 * rep['recall_3m3deg']:.1f} / {100 * rep['recall_5m5deg']:.1f} %, "
           f"median {rep['median_pos_err_m'] if rep['median_pos_err_m'] is None else round(rep['median_pos_err_m'], 4)} m / "
           f"{rep['median_rot_err_deg'] if rep['median_rot_err_deg'] is None else round(rep['median_rot_err_deg'], 4)} deg"
-          + (f"; {judged}" if judged else "") + f" -> {rep['markdown']}")
+          + (f"; {judged}" if judged else "")
+          + (f"; {rep['n_ignored_kept_out']} results for photos kept out not judged" if rep["n_ignored_kept_out"] else "")
+          + f" -> {rep['markdown']}")
     return 0

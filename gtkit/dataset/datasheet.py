@@ -16,7 +16,7 @@ import numpy as np
 
 from ..io.atomic import atomic_path, write_json, write_text
 from ..project import Project, read_stage_record
-from .gt import PublishedGT
+from .gt import PublishedGT, load_json
 
 SHEET_MD = "DATASET.md"
 PLOTS = "plots"
@@ -24,14 +24,6 @@ PLOTS = "plots"
 THRESHOLDS = ((1.0, 1.0), (3.0, 3.0), (5.0, 5.0))
 SIGMA_RULE = ("a photo can judge a threshold (m, deg) only where its pseudo-GT 2-sigma is within it: "
               "2 sigma_pos_m <= m and 2 sigma_rot_deg <= deg")
-
-
-def _load(p: Path) -> dict:
-    try:
-        d = json.loads(Path(p).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {}
-    return d if isinstance(d, dict) else {}
 
 
 def _stats(v) -> dict:
@@ -47,7 +39,7 @@ def provenance(project: Project) -> dict:
     from ..sfm import registration_record as record
 
     P = project.paths
-    block = _load(P.stage("sfm_reference") / "block.json")
+    block = load_json(P.stage("sfm_reference") / "block.json")
     geo = block.get("georegistration") or {}
     reg = record.read_registration(P.registration) or {}
     seqs = record.sequences(reg)
@@ -135,15 +127,18 @@ def markdown(d: dict, gt: PublishedGT) -> str:
         L.append(f"- mapping: {m.get('n_reference_photos', 0)} reference photos, {m.get('n_rendered_views', 0)} "
                  f"rendered database views, {m.get('n_depth_maps', 0)} depth maps"
                  + (f" (`{m['render_camera']}`)" if m.get("render_camera") else ""))
+    gcp = (f"; GCP residual median {_fmt(geo['gcp_median_err_m'], 3, ' m')}, RMSE {_fmt(geo.get('gcp_rmse_m'), 3, ' m')}"
+           if geo.get("gcp_median_err_m") is not None else "; no GCPs")
+    reproj = [f"{_fmt(reg[k], 2, ' px')} ({what})" for k, what in (("median_reproj_px", "SfM points"),
+                                                                  ("median_tiepoint_reproj_px", "clicked tie points"))
+              if reg.get(k) is not None]
     L += ["", "## How the pseudo-GT was made", "",
           f"- Reference block: {ref.get('n_registered', '–')} / {ref.get('n_images', '–')} photos, "
           f"mean reprojection {_fmt(ref.get('mean_reproj_px'), 2, ' px')}; georegistration by "
           f"{geo.get('used', '–')}: RMSE {_fmt(geo.get('rmse_inliers_m'), 3, ' m')} over {geo.get('n_inliers', '–')} "
-          f"inliers; GCP residual median {_fmt(geo.get('gcp_median_err_m'), 3, ' m')}, RMSE "
-          f"{_fmt(geo.get('gcp_rmse_m'), 3, ' m')}.",
+          f"inliers{gcp}.",
           f"- Joint bundle adjustment: {reg.get('n_tiepoints_in_ba', 0)} clicked and {reg.get('n_auto_tiepoints_in_ba', 0)} "
-          f"automatic tie points; median reprojection {_fmt(reg.get('median_reproj_px'), 2, ' px')} (SfM points), "
-          f"{_fmt(reg.get('median_tiepoint_reproj_px'), 2, ' px')} (clicked tie points).",
+          f"automatic tie points" + (f"; median reprojection {', '.join(reproj)}" if reproj else "") + ".",
           "- Sequences:"]
     L += [f"  - {name}: {v['how']}" for name, v in pv["registration"]["sequences"].items()]
     if ref.get("check_points"):

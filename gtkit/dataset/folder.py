@@ -18,6 +18,15 @@ FORMAT = "gtkit-dataset"
 SHEET_JSON = "dataset.json"
 
 
+def read_sheet(folder: str | Path) -> dict | None:
+    """``folder``'s ``dataset.json`` where it is one this package wrote, else None."""
+    try:
+        d = json.loads((Path(folder) / SHEET_JSON).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) and d.get("format") == FORMAT else None
+
+
 def previous_export(out: Path) -> dict | None:
     """The ``dataset.json`` of the dataset already in ``out``; None where ``out`` is absent or empty.
     A file, or a folder holding anything else, is refused in one line."""
@@ -28,11 +37,8 @@ def previous_export(out: Path) -> dict | None:
         raise GtkitError("the output exists and is not a folder", out)
     if not any(out.iterdir()):
         return None
-    try:
-        d = json.loads((out / SHEET_JSON).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        d = None
-    if not isinstance(d, dict) or d.get("format") != FORMAT:
+    d = read_sheet(out)
+    if d is None:
         raise GtkitError("the output folder holds something else (no dataset.json written by gtkit export dataset): "
                          "give a new or empty folder", out)
     return d

@@ -71,7 +71,8 @@ def _flagged_unverified(info: dict | None) -> str | None:
     return None
 
 
-def _json(path: Path) -> dict:
+def load_json(path: Path) -> dict:
+    """A JSON object file, or {} where it is missing, unreadable or not an object."""
     try:
         d = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -101,7 +102,7 @@ def collect(project: Project) -> PublishedGT:
     covs = read_covariances(cov_file) if cov_file.is_file() else {}
     reg = record.read_registration(P.registration) or {}
     images = reg.get("images") or {}
-    report = (_json(P.reports / "gt_report.json").get("per_image") or {})
+    report = (load_json(P.reports / "gt_report.json").get("per_image") or {})
     review = read_review(P.review)
     gt = PublishedGT({}, {}, {})
     for name in sorted(poses):

@@ -22,7 +22,6 @@ counted). Writes ``<stem>.json``, ``<stem>.md`` and ``<stem>_error_vs_sigma.png`
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,26 +45,16 @@ class Reference:
     root: Path | None = None                              # the project (None for a dataset)
 
 
-def _dataset(site: Path) -> dict | None:
-    f = site / "dataset.json"
-    if not f.is_file():
-        return None
-    try:
-        d = json.loads(f.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-        raise GtkitError(f"unreadable dataset.json ({e})", f) from None
-    return d if isinstance(d, dict) and d.get("format") == "gtkit-dataset" else None
-
-
 def load_reference(site: str | Path, against: str = "pseudo-gt") -> Reference:
     """The poses ``site`` judges against (see the module doc)."""
     from ..dataset import formats
+    from ..dataset.folder import read_sheet
     from ..geo import GeoFrame
 
     site = Path(site)
     if against not in AGAINST:
         raise GtkitError(f"unknown reference {against!r} (choose {' or '.join(AGAINST)})")
-    d = _dataset(site) if site.is_dir() else None
+    d = read_sheet(site) if site.is_dir() else None
     if d is not None:
         if against == "truth":
             raise GtkitError("an exported dataset holds no truth (--against truth needs a sample project)", site)
