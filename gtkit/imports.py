@@ -300,15 +300,18 @@ def import_poses(project, source: str | Path, settings: PoseImportSettings | Non
 def _import_covariances(source: Path, poses: dict, out: Path) -> int:
     """The covariances of a ``gtkit export dataset`` source's poses (its ``pseudo_gt_uncertainty.txt``)
     into ``out/covariances.txt``; an earlier import's file removed otherwise. Returns how many."""
+    from .dataset.formats import COLMAP, HLOC, HLOC_POSES, UNCERTAINTY, read_uncertainty
+    from .dataset.kapture_tree import KAPTURE
     from .io.poses import COVARIANCES, write_covariances
 
     (out / COVARIANCES).unlink(missing_ok=True)
     dataset = exported_dataset(source)
-    side = dataset / "pseudo_gt_uncertainty.txt" if dataset is not None else None
-    if side is None or not side.is_file():
+    if dataset is None:
         return 0
-    from .dataset.formats import read_uncertainty
-
+    side = dataset / UNCERTAINTY      # only for the dataset's own pose files, not a method's result kept there
+    own = {(dataset / p).resolve() for p in (f"{HLOC}/{HLOC_POSES}", f"{COLMAP}/queries", f"{KAPTURE}/query")}
+    if Path(source).resolve() not in own or not side.is_file():
+        return 0
     cov = {n: c for n, (_sp, _sr, c) in read_uncertainty(side).items() if n in poses}
     if cov:
         write_covariances(out / COVARIANCES, cov)

@@ -194,6 +194,13 @@ def test_import_poses_reads_each_format_back(site, exported, tmp_path):
         assert sorted(imported) == sorted(got) and all(np.array_equal(imported[n], covs[n]) for n in got)
         cams = read_intrinsics(root / "work" / "import" / "intrinsics.txt")
         assert all(cams[n] == read_intrinsics(root / "work" / "register" / "intrinsics.txt")[n] for n in got)
+    ds = tmp_path / "ds"         # a method's result kept inside the dataset folder: no pseudo-GT covariance for it
+    shutil.copytree(exported, ds, symlinks=True)
+    (ds / "mine").mkdir()
+    shutil.copy(ds / "hloc" / "pseudo_gt_poses.txt", ds / "mine" / "poses.txt")
+    assert gtkit(["import", "poses", str(root), str(ds / "mine" / "poses.txt"), "--intrinsics",
+                  str(ds / "hloc" / "queries_with_intrinsics.txt")]) == 0
+    assert not (root / "work" / "import" / "covariances.txt").exists()
 
 
 def test_reexport_of_an_unchanged_project_writes_nothing(site, exported, capsys):

@@ -118,7 +118,8 @@ def markdown(d: dict, gt: PublishedGT) -> str:
     for cam in sorted(set(gt.cameras.values()), key=lambda c: c.to_line()):
         L.append(f"- query camera `{cam.to_line()}` ({sum(1 for c in gt.cameras.values() if c == cam)} photos)")
     if q.get("n_zoom_photos"):
-        L.append(f"- zoom cameras {', '.join(q['zoom_cameras'])} on the rig `uav` ({q['n_zoom_photos']} photos, "
+        L.append(f"- zoom camera{'s' if len(q['zoom_cameras']) > 1 else ''} {', '.join(f'`{z}`' for z in q['zoom_cameras'])} "
+                 f"on the rig `uav` ({q['n_zoom_photos']} photos, "
                  "kapture/query/sensors/rigs.txt; no pseudo-GT of their own: the rig gives it)")
     L.append(f"- GNSS: {q.get('n_gnss_records', 0)} EXIF GPS records (EPSG:4326); attitude priors: "
              f"{(q.get('priors') or {}).get('n_photos', 0)} photos (kapture/query_priors)")
