@@ -66,7 +66,7 @@ def collect(project: Project) -> dict:
         est = read_poses(P.poses(REGISTER_STAGE)) if P.poses(REGISTER_STAGE).is_file() else {}
         rep.update({k: reg.get(k) for k in ("median_reproj_px", "mean_reproj_px", "median_tiepoint_reproj_px",
                                              "n_registered", "n_unverified", "n_images", "sequences", "bad_tiepoints",
-                                             "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba")})
+                                             "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba", "tie_surface")})
         rep["per_image"] = {n: dict(v) for n, v in reg.get("images", {}).items()}
         rep["sequences_needing_clicks"] = {q: s.get("error") for q, s in record.sequences(reg).items()
                                            if record.outcome(s) == record.NEEDS_CLICKS}
@@ -121,6 +121,10 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
           f"| median tie-point reprojection error | {_fmt(rep.get('median_tiepoint_reproj_px'), 2)} px |",
           f"| clicked / automatic tie points in the joint BA | {rep.get('n_tiepoints_in_ba', 0)} / "
           f"{rep.get('n_auto_tiepoints_in_ba', 0)} |"]
+    ts = rep.get("tie_surface")
+    if ts:   # how the automatic ties were judged: by the model in 3D, or not (no model)
+        L.append(f"| automatic ties on the model: smooth / off smooth surface / undecided (kept) | {ts['n_smooth']} / "
+                 f"{ts['n_rough']} / {ts['n_undecided']} |" if ts.get("model") else f"| automatic ties | {ts['why']} |")
     seqs = rep.get("sequences") or {}
     if seqs:
         n = record.counts(seqs)

@@ -86,7 +86,7 @@ def run(project: Project | str | Path, settings: RegisterSettings, force: bool =
 
 
 def _automatic_ties(project: Project, ref: ReferenceBlock, placed: Placed, model: Path | None, out: Path
-                    ) -> tuple[dict, set[str], int]:
+                    ) -> tuple[dict, set[str], int, dict]:
     """(automatic tie points: id -> {image: (x, y)}, those on rough model surface, how many the cross
     matching found): SIFT matches between the placed query photos and the reference photos, and the
     photos resected on their own joined to the reference block (``[register.extend]``)."""
@@ -98,7 +98,7 @@ def _automatic_ties(project: Project, ref: ReferenceBlock, placed: Placed, model
     auto = cross_matches(qp, qc, [P.stage(QUERIES_STAGE) / sq / "database.db" for sq in placed.blocks], ref.rec,
                          ref.db, settings.cross, ref=ref.points_read)
     n_auto_found = len(auto)
-    rough = _rough_ties(project, ref, auto, model) if auto else set()
+    rough, surface = _rough_ties(project, ref, auto, model) if auto else (set(), {})
     solo = sorted(n for n, r in placed.resected.items() if r.get("resected") and n in qp)
     if solo and settings.extend.enabled:
         ext, ext_rec = extension_ties(
@@ -108,7 +108,7 @@ def _automatic_ties(project: Project, ref: ReferenceBlock, placed: Placed, model
         for n, r in ext_rec.items():
             placed.resected[n]["extended"] = r
         auto.update(ext)
-    return auto, rough, n_auto_found
+    return auto, rough, n_auto_found, surface
 
 
 def _calibration_sources(P, blocks) -> dict[str, dict]:
@@ -137,14 +137,17 @@ def _calibration_sources(P, blocks) -> dict[str, dict]:
     return out
 
 
-def _rough_ties(project: Project, ref: ReferenceBlock, auto: dict, model: Path | None) -> set[str]:
-    """The automatic ties the model shows off smooth surface (:mod:`gtkit.sfm.tie_surface`); those it
-    cannot judge (no model, the disk off the model) are not among them."""
+def _rough_ties(project: Project, ref: ReferenceBlock, auto: dict, model: Path | None) -> tuple[set[str], dict]:
+    """(the automatic ties the model shows off smooth surface, :mod:`gtkit.sfm.tie_surface`; those it
+    cannot judge, the disk off the model, are not among them; the record of how they were judged)."""
     settings = ref.settings.smooth_surface
     judge = smooth_surface_judge(model, project.frame, settings, ref.rec,
                                  feature_side_of(project.paths.stage(REFERENCE_STAGE)))
     if judge is None:
-        return set()
+        why = ("off ([register.smooth_surface] enabled = false)" if not settings.enabled else
+               "no reference model (not built or imported, or it could not be drawn)")
+        return set(), {"model": None, "why": f"not judged: {why}; every automatic tie kept on the reference "
+                                             "SfM's own points"}
     try:
         ids = sorted(auto)
         keep, decided = judge.judge([reference_point_of(t) for t in ids])
@@ -153,7 +156,8 @@ def _rough_ties(project: Project, ref: ReferenceBlock, auto: dict, model: Path |
     rough = {t for t, k, d in zip(ids, keep, decided) if d and not k}
     log.info("automatic tie points: %d of %d on smooth model surface, %d off it, %d undecided (kept)",
              int((keep & decided).sum()), len(ids), len(rough), int((~decided).sum()))
-    return rough
+    return rough, {"model": str(model), "n_smooth": int((keep & decided).sum()), "n_rough": len(rough),
+                   "n_undecided": int((~decided).sum())}
 
 
 def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, clicks: dict, model: Path | None,
@@ -164,7 +168,7 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     t0, t_sim = times
     prefixes = tuple(f"queries/{s}/" for s in blocks)
     t_cm = time.time()
-    auto, rough, n_auto_found = _automatic_ties(project, ref, placed, model, out)
+    auto, rough, n_auto_found, result["tie_surface"] = _automatic_ties(project, ref, placed, model, out)
     clicks.update(auto)
     t_cm = time.time() - t_cm
     calibration = _calibration_sources(project.paths, blocks)
