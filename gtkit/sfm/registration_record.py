@@ -128,7 +128,9 @@ def calibration_words(s: dict) -> str:
         return ""
     words = f"; camera: {c['source']}"
     if c["source"] == "self-calibrated":
-        words += f" from its own {c.get('n_photos', '–')} photos (the last resort"
+        words = "; camera: " + (c["start"] + ", not confirmed by the ties" if "start" in c else
+                                f"self-calibrated from its own {c.get('n_photos', '–')} photos")
+        words += " (the last resort"
         words += f": {c['why_not_from_reference']})" if c.get("why_not_from_reference") else ")"
     return words
 

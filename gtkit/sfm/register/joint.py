@@ -234,12 +234,41 @@ def ties_per_photo(j: Joint, seq: str, auto_only: bool = True) -> int:
     return int(np.median(list(counts.values()))) if counts else 0
 
 
+def _seq_tie_residual(rec, j: Joint, seq: str) -> float:
+    """Median reprojection error (px) of the tie points' observations in the photos of ``seq``."""
+    ids = {j.image_ids[n] for n in j.image_ids if n.startswith(f"queries/{seq}/")}
+    errs = []
+    for pid in j.tie_pids.values():
+        p = rec.points3D[pid]
+        for e in p.track.elements:
+            if e.image_id in ids:
+                im = rec.images[e.image_id]
+                proj = im.project_point(p.xyz)
+                errs.append(np.inf if proj is None else float(np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy)))
+    return float(np.median(errs)) if errs else np.inf
+
+
+def _calibration_helps(j: Joint, seq: str, settings: RegisterSettings) -> bool:
+    """Whether calibrating ``seq``'s cameras from the ties (on a copy of the joint model) lowers its
+    tie residuals by more than ``calibration_gain``: a starting calibration taken for the reference's
+    by image size alone is kept where the ties confirm it, corrected where they do not."""
+    trial = pycolmap.Reconstruction(j.rec)
+    r0 = _seq_tie_residual(trial, j, seq)
+    _bundle_adjust(trial, j.ref_ids, settings, "CAUCHY", calibrated=j.seq_cams.get(seq, set()))
+    r1 = _seq_tie_residual(trial, j, seq)
+    log.info("sequence %s: tie residual %.2f px with the reference's calibration, %.2f px calibrated from the ties",
+             seq, r0, r1)
+    return r1 < (1.0 - settings.calibration_gain) * r0
+
+
 def _adjust(ref_rec, blocks, statuses, clicks: dict, auto: set[str], settings: RegisterSettings,
-            calibrate: set[str] = frozenset()):
+            calibrate: dict[str, str] | None = None):
     """The joint adjustment of the registered sequences (reference held) with the clicks and the
-    automatic ties in ``clicks``: passes a-c, the last with its covariance. ``calibrate``: sequences
-    whose cameras are calibrated from the ties from pass b on, where their photos hold
-    ``calibrate_from_ties`` automatic ties each after pass a (``Joint.calibrated``)."""
+    automatic ties in ``clicks``: passes a-c, the last with its covariance. ``calibrate``: sequence ->
+    "self" (its cameras calibrated from the ties from pass b on) or "confirm" (only where that lowers
+    its tie residuals: :func:`_calibration_helps`), where its photos hold ``calibrate_from_ties``
+    automatic ties each after pass a (``Joint.calibrated``)."""
+    calibrate = calibrate or {}
     j = build_joint(ref_rec, blocks, clicks)
     # pass a: Sim(3) inliers and the automatic tie points (placed by their reference photos alone, so
     # the query poses move to what both say before any automatic tie is judged by its residual)
@@ -253,8 +282,8 @@ def _adjust(ref_rec, blocks, statuses, clicks: dict, auto: set[str], settings: R
     j.set_ties(first)
     _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY")
     if settings.calibrate_from_ties > 0:
-        for q in sorted(calibrate):
-            if ties_per_photo(j, q) >= settings.calibrate_from_ties:
+        for q, how in sorted(calibrate.items()):
+            if ties_per_photo(j, q) >= settings.calibrate_from_ties and (how == "self" or _calibration_helps(j, q, settings)):
                 j.calibrated |= j.seq_cams.get(q, set())
         if j.calibrated:   # the ties placed: the cameras first calibrated on them, then every tie re-judged
             _bundle_adjust(j.rec, j.ref_ids, settings, "CAUCHY", calibrated=j.calibrated)

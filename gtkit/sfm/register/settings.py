@@ -75,6 +75,11 @@ class RegisterSettings:
     # Issue 55, entry-P10 held out with RTK positions: self-calibrated from 3 photos 92 mm (principal
     # point 22 px off), calibrated from 563 ties 16 mm, the reference's calibration 11 mm
     calibrate_from_ties: int = 50
+    # ... and a camera the sequence's SfM took for the reference's by image size alone (no EXIF camera
+    # identity, gtkit.sfm.block_cameras) is calibrated from the ties only where that lowers its tie
+    # residuals by more than this share (a wrong guess: pixels; the right one: a few %). fountain-P11 /
+    # entry-P10 held out: kept 3.8 / 15.8 mm, calibrated from the ties anyway 4.5 / 16.9 mm
+    calibration_gain: float = 0.2
     min_tiepoints: int = 3
     ba_max_iterations: int = 100
     num_threads: int = 2

@@ -129,7 +129,11 @@ def _calibration_sources(P, blocks) -> dict[str, dict]:
         if pol.get("self_calibrated_cameras"):
             out[q] = {"source": "self-calibrated", "n_photos": b.get("n_registered")}
         elif b.get("calibration_from_reference"):
-            out[q] = {"source": "the reference block's calibration: " + "; ".join(b["calibration_from_reference"])}
+            rules = sorted(b["calibration_from_reference"])
+            # taken by size alone (no EXIF camera identity): a guess the ties confirm or correct
+            guess = any(r.startswith("same sensor") for r in rules)
+            out[q] = {"source": "self-calibrated" if guess else "the reference block's calibration: " + "; ".join(rules),
+                      **({"start": "the reference block's calibration (" + "; ".join(rules) + ")"} if guess else {})}
         elif pol.get("fixed_cameras"):
             out[q] = {"source": "cameras.txt"}
         else:
@@ -172,12 +176,14 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     clicks.update(auto)
     t_cm = time.time() - t_cm
     calibration = _calibration_sources(project.paths, blocks)
-    calibrate = {q for q, c in calibration.items() if c["source"] == "self-calibrated"}
+    calibrate = {q: "confirm" if "start" in c else "self" for q, c in calibration.items() if c["source"] == "self-calibrated"}
     j, summary, cov, dropped, auto_choice = _adjust_choosing_ties(ref.rec, blocks, placed.statuses, clicks, set(auto),
                                                                  rough, settings, calibrate)
     for q, c in calibration.items():
         if j.seq_cams.get(q) and j.seq_cams[q] <= j.calibrated:
-            c["source"] = "calibrated from the reference's 3D points"
+            c["source"] = "calibrated from the reference's 3D points" + (f", starting from {c['start']}" if "start" in c else "")
+        elif "start" in c and ties_per_photo(j, q) >= settings.calibrate_from_ties:
+            c["source"] = c.pop("start") + ", confirmed by the ties"
         elif q in calibrate:
             c["why_not_from_reference"] = (f"{ties_per_photo(j, q)} automatic ties a photo, "
                                            f"{settings.calibrate_from_ties} needed to calibrate from them")

@@ -123,7 +123,7 @@ def _held_by_smooth(clicks: dict, auto: set[str], rough: set[str], seqs, min_smo
 
 
 def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str], rough: set[str],
-                          settings: RegisterSettings, calibrate: set[str] = frozenset()):
+                          settings: RegisterSettings, calibrate: dict[str, str] | None = None):
     """The joint adjustment, with the automatic ties on rough model surface (``rough``) kept only for
     the sequences where they are not biased (``choose_smooth``); ``rough`` empty: one adjustment.
     A sequence whose smooth-surface ties alone cannot hold it (fewer than ``min_smooth`` a photo)
