@@ -133,7 +133,7 @@ def test_predictions_after_the_gps_fit_then_clicks_refit_and_check_points(tiny_s
     proj = Project.load(root)
     truth = _truth(root)
     sol, out = predict(proj)
-    assert out.read_text().splitlines()[0] == "gcp,photo,x,y,sigma_px,source"
+    assert out.read_text().splitlines()[0] == "gcp,photo,x,y,sigma_px,source,where"
     pts = {p.name: p for p in load_marking(proj)[0]}
     assert pts["gcp02"].check and sum(p.check for p in pts.values()) == 1
     err = np.array([np.linalg.norm(_true_px(truth, p.photo, pts[p.gcp].xyz) - [p.x, p.y]) for p in sol.predictions])
@@ -147,11 +147,12 @@ def test_predictions_after_the_gps_fit_then_clicks_refit_and_check_points(tiny_s
     from gtkit.gcp.snap import snap_target
 
     snapped = []
-    for p in sol.predictions:
+    inside = [p for p in sol.predictions if not p.near_edge]    # 7 of 70 lie just outside their photo (issue 58)
+    for p in inside:
         xy, _ = snap_target(cv2.imread(str(root / "images" / p.photo), cv2.IMREAD_GRAYSCALE), (p.x, p.y), 12.0)
         if xy is not None:
             snapped.append(np.linalg.norm(xy - _true_px(truth, p.photo, pts[p.gcp].xyz)))
-    assert len(snapped) >= 0.8 * len(sol.predictions) and np.median(snapped) < 0.2 and np.mean(np.array(snapped) < 1) > 0.95
+    assert len(snapped) >= 0.8 * len(inside) and np.median(snapped) < 0.2 and np.mean(np.array(snapped) < 1) > 0.95
     sample = read_gcp_list(root / "truth/gcp_list_sample.txt", proj.frame)
     for g in sample:   # the photos the sample generator saw each GCP in are among the predicted ones
         assert {c.image for c in g.clicks} <= {p.photo for p in sol.for_gcp(g.name)}, g.name

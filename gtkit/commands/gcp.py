@@ -12,7 +12,9 @@ def register(sub):
                                    "  import  read a coordinates file (first line the CRS, then 'name x y z [acc_h [acc_v]]"
                                    " [check]',\n          CSV or whitespace) into gcp/points.txt\n"
                                    "  predict every GCP in every photo of the reference block that sees it, with its "
-                                   "uncertainty,\n          to work/gcp/predicted.csv (gcp, photo, x, y, sigma_px)\n"
+                                   "uncertainty,\n          to work/gcp/predicted.csv (gcp, photo, x, y, sigma_px, source, where); one "
+                                   "predicted just\n          outside a photo whose 2-sigma ellipse reaches into it is "
+                                   "listed 'near the edge'\n"
                                    "  status  each GCP and check point: clicks, image residual, X/Y/Z error\n"
                                    "Click them in the annotator's GCP page (gtkit annotate SITE); clicks go to "
                                    "gcp_list.txt.")
@@ -71,7 +73,12 @@ def run_predict(args):
 
     sol, out = predict(Project.load(args.project))
     n = len({p.gcp for p in sol.predictions})
-    print(f"{len(sol.predictions)} predicted positions of {n} GCPs -> {out}")
+    edge = [p for p in sol.predictions if p.near_edge]
+    print(f"{len(sol.predictions)} predicted positions of {n} GCPs -> {out}"
+          + (f" ({len(edge)} near the edge: predicted just outside the photo, its 2-sigma ellipse reaching in)"
+             if edge else ""))
+    for p in edge:
+        print(f"  near the edge: {p.gcp} in {p.photo} at ({p.x:.0f}, {p.y:.0f}) px, sigma {p.sigma_px:.0f} px")
     for line in _table(sol):
         print(line)
     return 0

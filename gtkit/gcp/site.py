@@ -146,7 +146,7 @@ def current_solution(project, block: Block | None = None, settings: GcpSettings 
 
 def predict(project, settings: GcpSettings | None = None) -> tuple[Solution, Path]:
     """``gtkit gcp predict``: every GCP's predicted position in every photo that sees it, to
-    ``work/gcp/predicted.csv`` (gcp, photo, x, y, sigma_px, source)."""
+    ``work/gcp/predicted.csv`` (gcp, photo, x, y, sigma_px, source, where: in the photo or near the edge)."""
     sol = current_solution(project, settings=settings)
     out = project.paths.root / PREDICTED
     write_text(out, predictions_csv(sol))
