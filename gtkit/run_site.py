@@ -3,7 +3,9 @@ reads and writes, its command) run in order on what a project holds, then a summ
 
 A stage whose input is absent (no query sequences, no model, no detections ...) is skipped with one
 line saying why; a stage that fails (:class:`GtkitError`) stops the run with that line, naming the
-stage. Every stage resumes as it does on its own (``work/<stage>/stage.json``), so a second run of
+stage, except a validation stage (``Stage.validation``: the database, localization), whose failure
+is listed as a problem (exit 1) while the stages after it still run: a run whose deliverables are
+all written does not end in an error for a check of them (issue 58). Every stage resumes as it does on its own (``work/<stage>/stage.json``), so a second run of
 a finished project re-reads the outputs and prints the same summary. Settings: each stage's from
 :func:`gtkit.stages.settings_for` (``project.toml`` over the defaults), as its own command resolves them.
 
@@ -127,6 +129,8 @@ def _run(root, opts, progress, starting) -> dict:
             after = record_time(project, name)
             status = "up to date" if (before is not None and after == before) or info.pop("_up_to_date", False) else "ran"
             res = StageResult(name, status, round(time.time() - t0, 1), info=info)
+        if failed is not None and STAGE[name].validation:   # a check failed: a problem, not the run's end
+            failed = None
         project = Project.load(root)    # a stage may have written project.toml (model build, import)
         results.append(res)
         if progress:
@@ -223,6 +227,7 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
     out["problems"] = [f"query block {q}: {b['error']}" for q, b in (out.get("query_blocks") or {}).items()
                        if "error" in b and q not in placed] + [f"pseudo-GT {q}: {e}" for q, e in
                                            ((out.get("pseudo_gt") or {}).get("errors") or {}).items()]
+    out["problems"] += [f"stage {r.name} failed: {r.why}" for r in results if r.status == "failed"]
     out["exports"] = sorted(rel(project, f) for f in (P.dsm, P.ortho, P.mesh_export, P.coordinates) if f.exists())
     out["seconds"] = {r.name: r.seconds for r in results if r.status not in ("not selected",)}
     if seconds is not None:

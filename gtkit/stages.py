@@ -69,6 +69,9 @@ class Stage:
     writes: tuple[str, ...]                     # project-relative paths it writes (a folder ends in /; * a glob)
     run: Callable[[Project, Any, Context], dict] = field(repr=False)
     record: str | None = None                   # work/<record>/stage.json: whether it ran or was up to date
+    # a check of the pseudo-GT rather than a deliverable (the database, localization): its failure is
+    # a problem of the run (exit 1), not the run's end: the later stages still run and export
+    validation: bool = False
 
     def check_inputs(self, project: Project) -> None:
         """Every photo the stage reads (its ``images/...`` reads) looked at before any is used; all bad
@@ -267,7 +270,19 @@ def _render_db(project, s, ctx):
         raise Skip("no query photos to localize")
     out = database.run(project, s, _executor(ctx), localize_settings=loc)
     rec = read_stage_record(out).summary
+    if rec.get("n_kept") == 0:
+        raise Skip(empty_database(rec, s.min_valid_fraction))
     return {"n_views": rec.get("n_views"), "n_kept": rec.get("n_kept")}
+
+
+def empty_database(rec: dict, min_valid: float) -> str:
+    """Why the database holds no view, in one line (``rec``: render-db's record)."""
+    g = rec.get("grid") or {}
+    src = g.get("source") or {}
+    return (f"no database view sees enough of the model (>= {min_valid:g} of the view): none of the "
+            f"{rec.get('n_views')} views planned at heights {g.get('heights')} m ({src.get('heights', '-')}), "
+            f"pitches {g.get('paper_pitches')} deg off nadir ({src.get('paper_pitches', '-')}); localization "
+            "skipped ([render_db] heights / paper_pitches / anchor in project.toml plan others)")
 
 
 def _localize(project, s, ctx):
@@ -275,8 +290,11 @@ def _localize(project, s, ctx):
 
     if not _query_names(project, s):
         raise Skip("no query photos to localize")
-    if read_stage_record(project.paths.stage("render_db")) is None:
+    db = read_stage_record(project.paths.stage("render_db"))
+    if db is None:
         raise Skip("no rendered database (render_db did not run)")
+    if db.summary.get("n_kept") == 0:
+        raise Skip("the rendered database holds no view (see render_db's line)")
     out = localize.run(project, s, executor=_executor(ctx))
     st = json.loads((out / "status.json").read_text())
     return {"n_localized": st.get("n_localized"), "n_queries": st.get("n_queries")}
@@ -349,10 +367,10 @@ STAGES: tuple[Stage, ...] = (
           ("reports/overlays/",), _overlays),
     Stage("render_db", "the localization database rendered over the model", "gtkit render-db DIR",
           (("render_db", "gtkit.localize.database:RenderDbSettings"),), ("model/", "images/queries/"),
-          ("work/render_db/",), _render_db, "render_db"),
+          ("work/render_db/",), _render_db, "render_db", validation=True),
     Stage("localize", "every query photo localized against the database", "gtkit localize DIR",
           (("localize", "gtkit.localize.localize:settings_for"),), ("work/render_db/", "images/queries/"),
-          ("work/localize/", "work/localize_db/"), _localize, "localize"),
+          ("work/localize/", "work/localize_db/"), _localize, "localize", validation=True),
     Stage("track", "targets from zoom-photo detections (rig, ray cast on the DSM)",
           "gtkit track calibrate DIR; gtkit track DIR",
           (("rig", "gtkit.track.rig:RigCalibrationSettings"), ("track", "gtkit.track.tracker:TrackSettings")),

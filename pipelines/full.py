@@ -142,21 +142,16 @@ if __name__ == "__main__":
     ap.add_argument("--preset", default="small", help="sample preset when a site is generated")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("-v", "--verbose", action="store_true",
-                    help="COLMAP, Open3D and Qt output on the terminal (else in work/<stage>/log.txt)")
+                    help="log records (INFO), COLMAP, Open3D and Qt output on the terminal (else in "
+                         "work/<stage>/log.txt)")
     a = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-
-    def starting(name):
-        print(f"[{name}] ...", flush=True)
-
-    def progress(r):
-        print(f"[{r.name}] " + (f"skipped: {r.why}" if r.status == "skipped" else f"{r.status} in {r.seconds} s"),
-              flush=True)
+    from gtkit.commands.run import stage_done, stage_starting   # gtkit run's one line per stage
 
     stage_log = None
     try:
         with quiet_terminal(a.verbose) as stage_log:
-            summary = main(a.project, a.preset, a.seed, progress, starting)
+            summary = main(a.project, a.preset, a.seed, stage_done, stage_starting)
         _print_summary(summary)
     except GtkitError as e:
         told = getattr(e, "traceback_file", None) is not None

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ..sfm import registration_record as record
+
 
 def register(sub):
     from ..run_site import STAGES
@@ -15,7 +17,10 @@ def register(sub):
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Run, in order, the stages that can run on what the project holds; a stage whose input is\n"
                     "absent is skipped with the reason, a failing stage stops the run (exit 2) naming it;\n"
-                    "a query sequence that could not be placed is listed as a problem (exit 1).\n"
+                    "a query sequence that could not be placed, or a failed check of the pseudo-GT (render_db,\n"
+                    "localize: the later stages still run), is listed as a problem (exit 1).\n"
+                    "The terminal shows one line per stage, warnings and the summary; each stage's log records\n"
+                    "are in work/<stage>/log.txt (gtkit -v run: on the terminal).\n"
                     "Finished stages are up to date and only re-read. Stages: " + ", ".join(STAGES) + ".\n"
                     "Summary: printed and written to reports/run.json. --executor dask sends every stage that\n"
                     "splits into tasks to the cluster: the SfM's features and matching, the model's depth maps,\n"
@@ -31,6 +36,22 @@ def register(sub):
 
 def _f(v, fmt="{:.3f}", unit=""):
     return "-" if v is None else fmt.format(v) + unit
+
+
+def query_block_line(b: dict, registered_by: str | None) -> str:
+    """How a query sequence's own SfM ended, in words: its photos registered; or no model of its own
+    and how the registration placed the sequence anyway (photo by photo against the reference: a
+    normal outcome for a short sequence or photos held out far apart, issue 58); ERROR only where
+    nothing placed it (also a problem of the run)."""
+    if "error" not in b:
+        return f"{b.get('n_registered')}/{b.get('n_images')} photos registered"
+    if not registered_by:
+        return f"ERROR {b['error']}"
+    why = b["error"].replace("the mapper reconstructed nothing (no initial pair found)",
+                             "the mapper found no initial pair")
+    how = ("photo by photo against the reference block" if registered_by == record.SINGLE_PHOTOS
+           else f"by {registered_by}")
+    return f"no model of its own ({why}): placed {how} (pseudo-GT below)"
 
 
 def print_summary(s: dict) -> None:
@@ -56,9 +77,9 @@ def print_summary(s: dict) -> None:
     source = {"built": "built from the photos", "imported": "imported or delivered", "none": "none"}.get(
         m.get("source"), m.get("source"))
     print(f"model         {source}" + (f" ({m['path']})" if m.get("path") else ""))
+    placed = pg.get("registered_by") or {}
     for seq, b in (s.get("query_blocks") or {}).items():
-        print(f"query block   {seq}: " + (f"ERROR {b['error']}" if "error" in b else
-                                          f"{b.get('n_registered')}/{b.get('n_images')} photos registered"))
+        print(f"query block   {seq}: {query_block_line(b, placed.get(seq))}")
     if pg:
         print(f"pseudo-GT     {pg.get('n_registered')}/{pg.get('n_images')} query photos registered, median sigma "
               f"{_f(pg.get('median_sigma_pos_m'))} m / {_f(pg.get('median_sigma_rot_deg'))} deg, reprojection "
@@ -86,21 +107,31 @@ def print_summary(s: dict) -> None:
         print(f"problem       {p}")
 
 
+def stage_starting(name: str) -> None:
+    """``[stage] ...`` while a stage runs: ended by a carriage return, so the stage's result line (or a
+    progress bar, or a warning) takes its place: one line per stage on the terminal and in a log."""
+    print(f"[{name}] ...", end="\r", flush=True)
+
+
+def stage_done(r) -> None:
+    """A stage's one line: ``[stage] ran in 3.2 s``, ``up to date``, ``skipped: why``, a validation
+    stage's ``failed: why`` (the run goes on); another failed stage's line is the error the run stops with."""
+    from ..stages import STAGE
+
+    if r.status == "skipped":
+        print(f"[{r.name}] skipped: {r.why}", flush=True)
+    elif r.status != "failed":
+        print(f"[{r.name}] {r.status} in {r.seconds} s", flush=True)
+    elif STAGE[r.name].validation:
+        print(f"[{r.name}] failed: {r.why}", flush=True)
+
+
 def run(args):
     from ..run_site import RunOptions, run as run_site
     from .render_db import executor_settings
 
-    def starting(name):
-        print(f"[{name}] ...", flush=True)
-
-    def progress(r):
-        if r.status == "skipped":
-            print(f"[{r.name}] skipped: {r.why}", flush=True)
-        elif r.status != "failed":
-            print(f"[{r.name}] {r.status} in {r.seconds} s", flush=True)
-
     opts = RunOptions(args.start, args.until, tuple(s for s in args.skip.split(",") if s),
                       executor_settings(args))
-    s = run_site(args.project, opts, progress, starting)
+    s = run_site(args.project, opts, stage_done, stage_starting)
     print_summary(s)
     return 1 if s.get("problems") else 0

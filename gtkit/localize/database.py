@@ -19,9 +19,10 @@ Memory: one view is rendered at a time per worker. Which parts of the model a vi
 chosen per view by a *part selector* (``parts`` setting; ``all`` draws everything); a tiled
 model can register a selector that picks the tiles a view sees.
 
-Size: one module for the database stage end to end (the grid resolved from the queries, the views
-the queries can reach, rendering fanned out and resumed, the record), which share the view record
-and its resume rules; the grid itself is :mod:`gtkit.localize.grid`, the reach :mod:`.reach`.
+Size: one module for the database stage end to end (the views the queries can reach, rendering
+fanned out and resumed, the record), which share the view record and its resume rules; the grid
+itself is :mod:`gtkit.localize.grid`, the grid that follows the queries :mod:`.flight`, the reach
+:mod:`.reach`.
 """
 from __future__ import annotations
 
@@ -44,31 +45,23 @@ from ..project import (STAGE_RECORD, Project, file_fingerprint, mark_stage_done,
                        start_stage_clock)
 from ..render.frustum import ray_box_fraction
 from .executors import ExecutorSettings, iter_map, make_executor
+from .flight import GRID_FIELDS, PAPER_GRID, PAPER_PITCHES, flight_inputs, grid_hfov, resolve_grid  # noqa: F401
+from .flight import grid_given as _grid_given
 from .grid import ANCHORS, View, ground_level, make_views
 
 log = logging.getLogger(__name__)
 STAGE = "render_db"
 
 
-PAPER_PITCHES = (0.0, 45.0)   # the UAVD4L paper's database pitches, from nadir
-
-
-# The grid when the queries say nothing (no GPS altitude / no gimbal angles / no intrinsics): the
-# paper's heights and intervals, its pitches plus 70 deg from nadir (= DJI -20: queries flown 15-70
-# deg below the horizon are then within 15 deg of a level; +50 % views; ablation 'render-paper'), 60 deg.
-PAPER_GRID = {"heights": (100.0, 150.0), "intervals": (50.0, 75.0), "paper_pitches": (*PAPER_PITCHES, 70.0),
-              "hfov_deg": 60.0}
-GRID_FIELDS = tuple(PAPER_GRID)
-
-
 @dataclass(frozen=True)
 class RenderDbSettings:
-    # The grid (None = follows the queries, :func:`resolve_grid`; a value given in project.toml
-    # [render_db] or on the command line wins): heights H above the model's ground level (m) from
-    # the queries' GPS altitudes above the model's ground under them; grid interval alpha_t per
-    # height (m) from H and the field of view; pitches from nadir (0 = DJI -90, 45 = DJI -45) from
-    # the queries' gimbal pitches; the virtual camera's horizontal field of view from the queries'
-    # intrinsics. Without that information: PAPER_GRID.
+    # The grid (None = follows the queries, :func:`gtkit.localize.flight.resolve_grid`; a value given
+    # in project.toml [render_db] or on the command line wins): heights H above the model's ground
+    # level (m) from the queries' GPS altitudes above the model's ground under them; grid interval
+    # alpha_t per height (m) from H and the field of view; pitches from nadir (0 = DJI -90, 45 = DJI
+    # -45) from the queries' gimbal pitches; the virtual camera's horizontal field of view from the
+    # queries' intrinsics. A photo without GPS altitude or gimbal angles: its geo.txt position and
+    # pseudo-GT pose instead. Without any of that: PAPER_GRID.
     heights: tuple[float, ...] | None = None
     intervals: tuple[float, ...] | None = None
     paper_pitches: tuple[float, ...] | None = None
@@ -330,118 +323,6 @@ def _existing_fraction(path: Path) -> float | None:
 
 # --- the stage ----------------------------------------------------------------------------------
 
-def _grid_given(s: RenderDbSettings) -> bool:
-    return all(getattr(s, k) is not None for k in GRID_FIELDS)
-
-
-def query_flight(project: Project, renderer, extent, ground_z: float, cells: int = 128,
-                 radius_m: float = 15.0) -> dict:
-    """What the query photos say about where they were flown: per photo with GPS and an altitude,
-    its height above the model's ground under it (the median top-surface height within ``radius_m``
-    of its position, from an orthographic height render; the ground level ``ground_z`` off the
-    model); its gimbal pitch off nadir where it has DJI angles; the field of view of each photo
-    whose intrinsics resolve (:func:`gtkit.queries.query_cameras`)."""
-    from ..io.exif import capture_seconds, read_photo_meta
-    from ..queries import query_cameras, query_photos
-    from ..altitude_drift import altitude_drift_at
-
-    names = query_photos(project)
-    out = {"n_queries": len(names), "agl_m": {}, "off_nadir_deg": {}, "hfov_deg": {}, "notes": []}
-    if not names:
-        return out
-    # photos of the reference flight itself (held out of it): their GPS altitude drifts as the
-    # reference photos' did, and the georegistration measured that drift (consumer GPS: tens of m)
-    ref_report = project.paths.reports / "reference.json"
-    fit = None
-    if ref_report.is_file():
-        fit = (json.loads(ref_report.read_text()).get("georegistration") or {}).get("fit")
-    n_drift = 0
-    xmin, ymin, xmax, ymax = extent
-    gsd = max(xmax - xmin, ymax - ymin) / cells
-    hmap = renderer.render_ortho(xmin, ymin, xmax, ymax, gsd, with_rgb=False).depth  # row 0 = ymax
-    k = max(1, int(round(radius_m / gsd)))
-    for n in names:
-        m = read_photo_meta(project.paths.images / n)
-        if m.has_gimbal:
-            out["off_nadir_deg"][n] = 90.0 + float(m.gimbal_pitch)
-        if not (m.has_gps and m.altitude is not None):
-            continue
-        x, y, z = (float(v) for v in np.ravel(project.frame.wgs84_to_local(m.lon, m.lat, m.altitude))[:3])
-        drift = altitude_drift_at(fit, capture_seconds(m.timestamp))
-        if drift is not None:
-            z -= drift
-            n_drift += 1
-        r_, c_ = int((ymax - y) / gsd), int((x - xmin) / gsd)
-        win = hmap[max(0, r_ - k):max(0, r_ + k + 1), max(0, c_ - k):max(0, c_ + k + 1)]
-        ground = float(np.nanmedian(win)) if win.size and np.isfinite(win).any() else ground_z
-        if z - ground < 5.0:
-            out["notes"].append(f"{n}: GPS altitude {m.altitude:g} m is {z - ground:.1f} m above the model's ground "
-                                "under it: left out of the height envelope")
-            continue
-        out["agl_m"][n] = z - ground
-    if n_drift:
-        out["notes"].append(f"{n_drift} photos taken during the reference flight: GPS altitude corrected by the "
-                            f"drift its georegistration measured ({fit['altitude_drift_m']:.1f} m over the flight)")
-    try:
-        cams = query_cameras(project, names)
-        out["hfov_deg"] = {n: float(c.camera.hfov_deg()) for n, c in cams.items()}
-    except GtkitError as e:
-        out["notes"].append(f"query field of view unknown ({e})")
-    return out
-
-
-def grid_hfov(hfovs) -> float:
-    """The database views' field of view for queries of these fields of view: their median, 30-90
-    deg, in whole degrees (a calibration that moves it by a fraction of a degree keeps the views)."""
-    return float(round(float(np.clip(np.median(list(hfovs)), 30.0, 90.0))))
-
-
-def resolve_grid(project: Project, s: RenderDbSettings, renderer, extent, ground_z: float
-                 ) -> tuple[RenderDbSettings, dict]:
-    """``s`` with every grid field left None filled in (see :class:`RenderDbSettings`), and a record
-    of where each came from. Heights, pitches and field of view follow the query photos' envelope
-    (:func:`gtkit.localize.grid.height_levels`, :func:`pitch_levels`; the median field of view,
-    30-90 deg), intervals the heights and field of view (:func:`level_interval`); what the queries
-    do not tell comes from :data:`PAPER_GRID`."""
-    from .grid import height_levels, level_interval, pitch_levels
-
-    src = {k: "settings" for k in GRID_FIELDS if getattr(s, k) is not None}
-    if _grid_given(s):
-        return s, {"source": src}
-    fl = query_flight(project, renderer, extent, ground_z)
-    ch: dict = {}
-    # each grid value the settings leave open: (its flight figures, how they make it, what they are, else why not)
-    follows = {"hfov_deg": ("hfov_deg", grid_hfov, "photos' intrinsics, median", "no query intrinsics"),
-               "heights": ("agl_m", lambda v: height_levels(list(v)), "photos' GPS altitude above the model's ground",
-                           "no query GPS altitude"),
-               "paper_pitches": ("off_nadir_deg", lambda v: pitch_levels(list(v)), "photos' gimbal pitch",
-                                 "no gimbal angles")}
-    for name, (key, make, what, missing) in follows.items():
-        if getattr(s, name) is not None:
-            continue
-        if fl[key]:
-            ch[name], src[name] = make(fl[key].values()), f"queries ({len(fl[key])} {what})"
-        else:
-            ch[name], src[name] = PAPER_GRID[name], f"default ({missing})"
-    heights = ch.get("heights", s.heights)
-    if s.intervals is None:
-        hfov = ch.get("hfov_deg", s.hfov_deg)
-        ch["intervals"] = tuple(level_interval(h, hfov) for h in heights)
-        src["intervals"] = "heights x field of view"
-    elif len(s.intervals) != len(heights):
-        raise GtkitError(f"[render_db] intervals {tuple(s.intervals)} need one value per height, and the "
-                         f"heights {heights} come from the queries: give heights too, or leave intervals out",
-                         project.paths.project_toml)
-    info = {"source": src, "queries": {"n": fl["n_queries"], "with_altitude": len(fl["agl_m"]),
-                                       "with_gimbal": len(fl["off_nadir_deg"]), "with_intrinsics": len(fl["hfov_deg"])},
-            "notes": fl["notes"]}
-    for key, vals in (("agl_m", fl["agl_m"]), ("off_nadir_deg", fl["off_nadir_deg"]), ("hfov_deg", fl["hfov_deg"])):
-        if vals:
-            v = np.array(list(vals.values()))
-            info["queries"][key + "_min_median_max"] = [round(float(x), 1) for x in (v.min(), np.median(v), v.max())]
-    return replace(s, **ch), info
-
-
 def plan_views(project: Project, s: RenderDbSettings) -> tuple[list[View], dict, RenderDbSettings]:
     """The viewpoints for this model and settings, the extent, ground level and grid used, and the
     settings with the grid resolved (:func:`resolve_grid`)."""
@@ -491,6 +372,8 @@ def run(project: Project | str | Path, settings: RenderDbSettings,
 
         names = query_photos(project)
         inputs["queries"] = settings_key({n: file_fingerprint(P.images / n) for n in names})
+        if not _grid_given(settings):
+            inputs.update(flight_inputs(project, names))   # geo.txt, pseudo-GT: where the photos' sensors are silent
         if settings.hfov_deg is None and not _grid_given(settings):
             try:
                 inputs["query_hfov"] = grid_hfov(c.camera.hfov_deg() for c in query_cameras(project, names).values())

@@ -67,6 +67,11 @@ def grid_positions(xmin: float, ymin: float, xmax: float, ymax: float, interval:
 
 
 ANCHORS = ("camera", "look_at")
+# A view this far off nadir or more looks at no ground point near it (at 80 deg the ray meets the
+# ground level 5.7 H away, at 85 deg 11.4 H): the look_at anchor stands it at its grid position. On
+# the fountain set held out (queries 2.8 m up, looking horizontally) the look_at grid kept 0 of 432
+# views (its cameras 32 m back from the model), standing at the positions 164.
+HORIZON_PITCH = 80.0
 
 
 def make_views(extent: tuple[float, float, float, float], ground_z: float, heights, intervals,
@@ -74,7 +79,8 @@ def make_views(extent: tuple[float, float, float, float], ground_z: float, heigh
     """All viewpoints, ordered level by level, position by position. ``anchor``: what the grid
     positions are: ``"camera"`` the camera centres (the paper), ``"look_at"`` the points on the
     ground level the views look at (each camera stands ``H tan(pitch)`` back from its position along
-    its yaw), so oblique views look at the model from around it instead of off its edges."""
+    its yaw), so oblique views look at the model from around it instead of off its edges; a pitch of
+    :data:`HORIZON_PITCH` or more stands at its position either way."""
     if anchor not in ANCHORS:
         raise ValueError(f"anchor must be one of {ANCHORS}, got {anchor!r}")
     xmin, ymin, xmax, ymax = extent
@@ -83,7 +89,7 @@ def make_views(extent: tuple[float, float, float, float], ground_z: float, heigh
     for H, a in zip(heights, intervals):
         for k, (x, y) in enumerate(grid_positions(xmin, ymin, xmax, ymax, a)):
             for pp in paper_pitches:
-                back = H * np.tan(np.radians(pp)) if anchor == "look_at" else 0.0
+                back = H * np.tan(np.radians(pp)) if anchor == "look_at" and pp < HORIZON_PITCH else 0.0
                 for yaw in yaws:
                     name = f"h{H:g}/p{k:04d}_t{pp:g}_y{yaw:03.0f}"
                     # DJI yaw: clockwise from north (+y); the view looks along (sin yaw, cos yaw)
@@ -94,7 +100,7 @@ def make_views(extent: tuple[float, float, float, float], ground_z: float, heigh
     return views
 
 
-# --- a grid that follows the queries (gtkit.localize.database.resolve_grid) -----------------------
+# --- a grid that follows the queries (gtkit.localize.flight.resolve_grid) --------------------------
 
 def height_levels(agl, max_ratio: float = 2.0, max_levels: int = 4) -> tuple[float, ...]:
     """Database heights spanning the queries' heights above ground ``agl`` (5th-95th percentile):
