@@ -1,11 +1,15 @@
 """Quiet terminal, full logs on disk.
 
-Inside :func:`quiet_terminal` the terminal shows gtkit's own INFO lines (one per finished step),
-warnings, errors, progress bars and what a command prints; everything else - COLMAP's glog lines,
-Ceres, Open3D, Qt and pymeshlab messages, worker processes' output, gtkit's DEBUG lines - goes to the
-log of the stage that runs, ``work/<stage>/log.txt`` (every stage starts its clock through
-:func:`gtkit.project.start_stage_clock`, which calls :func:`stage_started`), so a failure can be
-read afterwards. Before the first stage starts nothing is redirected.
+Inside :func:`quiet_terminal` the terminal shows warnings, errors, progress bars and what a command
+prints (its one line per stage, its summary); everything else - log records below WARNING (gtkit's
+INFO lines: each step's figures, which files were written), COLMAP's glog lines, Ceres, Open3D, Qt
+and pymeshlab messages, worker processes' output - goes to the log of the stage that runs,
+``work/<stage>/log.txt`` (every stage starts its clock through :func:`gtkit.project.start_stage_clock`,
+which calls :func:`stage_started`), so a run can be read afterwards. Before the first stage starts
+the descriptors are left alone; log records below WARNING are held then (the last
+:data:`PENDING_MAX`) and written at the top of the first stage's log (a run whose stages are all up
+to date opens none: its "up to date" records are dropped). Issue 58: the README's main job printed
+114 lines, 42 of them INFO records; the terminal is for what a user acts on.
 
 How: the C libraries write to file descriptors 1 and 2, so those are pointed at the stage's log
 (``dup2``), while Python's ``sys.stdout`` / ``sys.stderr`` and the logging handlers that wrote to
@@ -15,6 +19,7 @@ leaves everything on the terminal as before. Not used where the process's stdio 
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import os
@@ -23,6 +28,21 @@ from pathlib import Path
 
 LOG_NAME = "log.txt"
 _FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+PENDING_MAX = 500
+
+
+class _Pending(logging.Handler):
+    """The records logged before the first stage's log opens (written there when it does)."""
+
+    def __init__(self, capture: "_Capture"):
+        super().__init__(logging.DEBUG)
+        self.capture = capture
+        self.setFormatter(logging.Formatter(_FORMAT))
+        self.lines: collections.deque[str] = collections.deque(maxlen=PENDING_MAX)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.capture.log_path is None:
+            self.lines.append(self.format(record))
 
 
 class _Capture:
@@ -33,6 +53,12 @@ class _Capture:
         self.log_path: Path | None = None
         self.opened: set[Path] = set()
         self.handler: logging.Handler | None = None
+        self.pending = _Pending(self)
+
+    @staticmethod
+    def terminal_filter(record: logging.LogRecord) -> bool:
+        """The terminal's log handlers: WARNING and up."""
+        return record.levelno >= logging.WARNING
 
     def switch(self, path: Path) -> None:
         """Send descriptors 1 and 2 (and gtkit's DEBUG log) to ``path`` from now on."""
@@ -49,6 +75,9 @@ class _Capture:
                 stream.flush()
         for fd in (1, 2):
             os.dup2(new.fileno(), fd)
+        if self.pending.lines:            # what was logged before the first stage
+            new.write("\n".join(self.pending.lines) + "\n")
+            self.pending.lines.clear()
         if self.handler is None:
             self.handler = logging.StreamHandler(new)
             self.handler.setLevel(logging.DEBUG)
@@ -107,7 +136,9 @@ def quiet_terminal(verbose: bool = False):
         if isinstance(h, logging.StreamHandler) and getattr(h, "stream", None) in (old_err, old_out):
             moved.append((h, h.stream))
             h.setStream(cap.terminal[2] if h.stream is old_err else cap.terminal[1])
+            h.addFilter(cap.terminal_filter)
     sys.stdout, sys.stderr = cap.terminal[1], cap.terminal[2]
+    logging.getLogger().addHandler(cap.pending)
     _ACTIVE = cap
     try:
         yield cap
@@ -121,6 +152,8 @@ def quiet_terminal(verbose: bool = False):
         sys.stdout, sys.stderr = old_out, old_err
         for h, stream in moved:
             h.setStream(stream)
+            h.removeFilter(cap.terminal_filter)
+        logging.getLogger().removeHandler(cap.pending)
         if cap.handler is not None:
             logging.getLogger().removeHandler(cap.handler)
         if cap.log_file is not None:

@@ -85,6 +85,15 @@ def test_gtkit_run_goes_to_the_end_on_real_photos(as_shot):
     assert record.outcome(s) == record.SINGLE_PHOTOS
     assert f"- **seq**: {record.describe(s)}" in (held / "reports" / "gt_report.md").read_text()
     assert "seq: registered by single photos" in run.stdout
+    # issue 58: the summary says how the sequence was placed, without ERROR; a quiet terminal: at most
+    # 30 lines before the summary (measured 19), no INFO record. In text mode a carriage return reads
+    # as a line end: the "[stage] ..." status it ends and progress bars' refreshes are not lines.
+    assert "query block   seq: no model of its own (the mapper found no initial pair): placed photo by photo" in run.stdout
+    assert "ERROR" not in run.stdout + run.stderr and "INFO" not in run.stdout + run.stderr
+    before = run.stdout[:run.stdout.index("== gtkit run on")].splitlines() + run.stderr.splitlines()
+    lines = [ln for ln in before if ln.strip() and not re.fullmatch(r"\[\w+\] \.\.\.", ln)
+             and not re.search(r"\[\d+:\d\d", ln)]
+    assert len(lines) <= 30, lines
 
 
 def test_heldout_real_photos_localized_and_registered(as_shot, yardstick):
