@@ -3,11 +3,12 @@ intervals left open in the settings): what the query photos say about where they
 
 Each photo's height and pitch come from its sensors first: its GPS altitude above the model's
 ground and its gimbal pitch (a UAV's photos: the database does not depend on the pseudo-GT it
-validates). A photo whose sensors say nothing (no EXIF GPS altitude, no gimbal angles: a
-terrestrial or phone set, photos with positions in ``geo.txt`` only) takes them from what else the
-project knows of it: its ``geo.txt`` position, then its pseudo-GT pose (``work/register/poses.txt``,
-written before render-db runs): the camera centre's height above the model's ground, the optical
-axis's angle off nadir. What no photo tells comes from :data:`PAPER_GRID`.
+validates; a consumer camera's GPS photo without gimbal angles keeps the default pitches, as
+before). A photo without a GPS altitude (a terrestrial or phone set, photos with positions in
+``geo.txt`` only) takes its height from what else the project knows of it: its ``geo.txt``
+position, then its pseudo-GT pose (``work/register/poses.txt``, written before render-db runs),
+and, without gimbal angles, its pitch from that pose (the optical axis's angle off nadir). What no
+photo tells comes from :data:`PAPER_GRID`.
 
 Issue 58: the fountain set held out (queries 2.8 m above the ground, looking horizontally, no GPS
 altitude) got the paper's 100-150 m nadir / oblique grid, kept 0 of its 48 views, and localization
@@ -50,26 +51,21 @@ def grid_hfov(hfovs) -> float:
 
 def flight_inputs(project: Project, names: list[str]) -> dict:
     """The files besides the photos the grid may follow (render-db's inputs): ``geo.txt`` and the
-    pseudo-GT poses, each only where some query photo lacks the sensor figure it stands in for (a
-    UAV project's database does not wait on its pseudo-GT)."""
+    pseudo-GT poses, only where some query photo has no GPS altitude (a UAV project's database does
+    not wait on its pseudo-GT)."""
     from ..io.exif import read_photo_meta
 
-    no_alt = no_gimbal = False
-    for n in names:
+    def no_altitude(n: str) -> bool:
         try:
             m = read_photo_meta(project.paths.images / n)
         except GtkitError:
-            no_alt = no_gimbal = True
-            break
-        no_alt |= not (m.has_gps and m.altitude is not None)
-        no_gimbal |= not m.has_gimbal
+            return True
+        return not (m.has_gps and m.altitude is not None)
+
     P = project.paths
-    out = {}
-    if no_alt:
-        out["geo_txt"] = file_fingerprint(P.geo_txt)
-    if no_alt or no_gimbal:
-        out["pseudo_gt_poses"] = file_fingerprint(P.pseudo_gt_poses)
-    return out
+    if not any(no_altitude(n) for n in names):
+        return {}
+    return {"geo_txt": file_fingerprint(P.geo_txt), "pseudo_gt_poses": file_fingerprint(P.pseudo_gt_poses)}
 
 
 def _pseudo_gt(project: Project) -> dict:
@@ -133,9 +129,7 @@ def query_flight(project: Project, renderer, extent, ground_z: float, cells: int
                 continue
             out["agl_m"][n], out["from"]["agl_m"][n] = z - ground, "GPS altitude"
             continue
-        if n in out["off_nadir_deg"] and n in out["agl_m"]:
-            continue
-        # no sensor figure: what else the project knows of the photo (geo.txt, its pseudo-GT pose)
+        # no GPS altitude: what else the project knows of the photo (geo.txt, its pseudo-GT pose)
         if pgt is None:
             pgt = _pseudo_gt(project)
         pose = pgt.get(n)
