@@ -51,6 +51,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from gtkit.sfm.similarity import umeyama as similarity_umeyama  # noqa: E402
 SHARED = ROOT.parent / "shared"
 SPLIT = SHARED / "tools" / "truth_split.py"
 CASES = [(k, p) for k in ("freeK", "knownK") for p in ("nopos", "rtk")]
@@ -77,15 +79,9 @@ def read_geo(set_dir: Path) -> dict:
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray):
-    """Least-squares similarity dst ~ c R src + t."""
-    ms, md = src.mean(0), dst.mean(0)
-    S, D = src - ms, dst - md
-    U, s, Vt = np.linalg.svd(D.T @ S / len(src))
-    E = np.eye(3)
-    E[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ E @ Vt
-    c = (s * np.diag(E)).sum() / (S ** 2).sum() * len(src)
-    return c, R, md - c * R @ ms
+    """Least-squares similarity dst ~ c R src + t (gtkit's Umeyama): (c, R, t)."""
+    S = similarity_umeyama(src, dst)
+    return S.scale, S.R, S.t
 
 
 # --------------------------------------------------------------------------------------------- anchor

@@ -31,6 +31,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from gtkit.sfm.similarity import umeyama as similarity_umeyama  # noqa: E402
 
 
 def _centres(proj: Path, rel: str) -> dict:
@@ -45,14 +46,9 @@ def _centres(proj: Path, rel: str) -> dict:
 
 
 def _umeyama(src: np.ndarray, dst: np.ndarray):
-    ms, md = src.mean(0), dst.mean(0)
-    S, D = src - ms, dst - md
-    U, s, Vt = np.linalg.svd(D.T @ S / len(src))
-    E = np.eye(3)
-    E[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ E @ Vt
-    c = (s * np.diag(E)).sum() / (S ** 2).sum() * len(src)
-    return c, R, md - c * R @ ms
+    """Least-squares similarity dst ~ c R src + t (gtkit's Umeyama): (c, R, t)."""
+    S = similarity_umeyama(src, dst)
+    return S.scale, S.R, S.t
 
 
 def _images(held: Path) -> dict:
