@@ -34,6 +34,12 @@ from .settings import ModelSettings
 from .views import block_dir, choose_neighbours, fusion_neighbours, load_image, load_views, region
 
 log = logging.getLogger(__name__)
+
+
+class NoStereo(GtkitError):
+    """The reference block's photos cannot make a model (too few, or none with stereo neighbours): the
+    project goes on without one where it can (``gtkit run``: the pseudo-GT's automatic ties stay on
+    the reference SfM's own points; the stages that draw a model say they cannot run)."""
 STAGE = "model"
 MODEL_FILE = "reference.obj"
 TILES_DIR = "tiles"          # the tiled copy of a large site's model, beside the OBJ
@@ -307,7 +313,7 @@ def run(project: Project | str | Path, settings: ModelSettings, *, force: bool =
         return read_stage_record(work).summary
     start_stage_clock(work)
     if len(views) < 3:
-        raise GtkitError(f"only {len(views)} usable registered photos in the reference block", block)
+        raise NoStereo(f"only {len(views)} usable registered photos in the reference block", block)
     t = {"start": time.time()}
     mem, cpu = {}, {"start": _cpu_s()}
     _reset_peak()
@@ -316,7 +322,7 @@ def run(project: Project | str | Path, settings: ModelSettings, *, force: bool =
     for n, why in sk.items():
         log.warning("skipping %s: %s", n, why)
     if not neighbours:
-        raise GtkitError("no photo has enough neighbours for stereo (see the reasons with -v)", block)
+        raise NoStereo("no photo has enough neighbours for stereo (see the reasons with -v)", block)
     folder = depth_folder(project, settings, method)
     folder.mkdir(parents=True, exist_ok=True)
     kids = _children_peak_gb()
