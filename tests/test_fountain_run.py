@@ -6,8 +6,8 @@ photos, 4 queries 1.6-2.8 m above the ground looking horizontally, 3072 x 2048, 
 Before: render-db planned the paper's 100-150 m grid "(no query GPS altitude)", kept 0 of 48 views,
 and localize stopped the run with exit 2 after the pseudo-GT and exports were written. Now the grid
 follows the queries' geo.txt heights and pseudo-GT pitches (one level 2 m up, 85 degrees off nadir):
-measured 262 of 616 planned views kept, 4/4 localized (2 within 0.03 m of the truth, 0.45 m and
-2.8 m the others), exit 0. About 4 minutes on 2 loaded cores from scratch: GTKIT_SLOW=1. The
+measured 262 of 616 planned views kept, 4/4 localized (0.006 and 0.026 m from the truth, 0.44 m and
+2.8 m the others), exit 0. 161 s on 2 loaded cores from scratch (up to 4 minutes): GTKIT_SLOW=1. The
 planning and skip decisions on cheap inputs: tests/test_database_plan.py."""
 from __future__ import annotations
 
