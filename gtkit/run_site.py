@@ -201,6 +201,7 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
     if reg:
         imgs = (reg.get("images") or {}).values()
         out["pseudo_gt"] = {"n_registered": reg.get("n_registered"), "n_images": reg.get("n_images"),
+                            "n_unverified": reg.get("n_unverified") or 0,
                             "median_sigma_pos_m": _median(i.get("sigma_pos_m") for i in imgs),
                             "median_sigma_rot_deg": _median(i.get("sigma_rot_deg") for i in imgs),
                             "median_reproj_px": reg.get("median_reproj_px"),
@@ -227,6 +228,9 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
     out["problems"] = [f"query block {q}: {b['error']}" for q, b in (out.get("query_blocks") or {}).items()
                        if "error" in b and q not in placed] + [f"pseudo-GT {q}: {e}" for q, e in
                                            ((out.get("pseudo_gt") or {}).get("errors") or {}).items()]
+    if (out.get("pseudo_gt") or {}).get("n_unverified"):   # poses without sigma: not results (issue 55)
+        out["problems"].append(f"pseudo-GT: {out['pseudo_gt']['n_unverified']} query photos unverified (no sigma; "
+                               "why: reports/gt_report.md, 'Unverified photos')")
     out["problems"] += [f"stage {r.name} failed: {r.why}" for r in results if r.status == "failed"]
     out["exports"] = sorted(rel(project, f) for f in (P.dsm, P.ortho, P.mesh_export, P.coordinates) if f.exists())
     out["seconds"] = {r.name: r.seconds for r in results if r.status not in ("not selected",)}

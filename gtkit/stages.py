@@ -187,7 +187,13 @@ def _model(project, s, ctx):
     if state == "imported":
         raise Skip(f"a model was imported or delivered ({rel(project, path)}); not building one "
                    "(`gtkit model build SITE --use` builds one and makes it the project's)")
-    r = run(project, s, executor=on_cluster(ctx))
+    from .model.build import NoStereo
+
+    try:
+        r = run(project, s, executor=on_cluster(ctx))
+    except NoStereo as e:   # the photos cannot make a model: the pseudo-GT still can (issue 55)
+        raise Skip(f"no model can be built ({e}): the pseudo-GT's automatic ties stay on the reference SfM's "
+                   "points; the DSM, orthophoto, overlays and localization need a model (gtkit import model)") from None
     prepare_cache(project)          # the 3D view's decimated copy, as `gtkit model build` makes it
     return {"triangles": r.get("triangles"), "photos": r.get("photos"), "depth_maps": r.get("depth_maps")}
 

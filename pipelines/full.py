@@ -70,7 +70,7 @@ def _job(root: Path, paths: Paths, times: dict, progress, starting) -> dict:
     ref = _load(paths.stage("sfm_reference") / "block.json")
     summary["pseudo_gt"] = {"reference": {k: ref.get(k) for k in ("n_registered", "n_images", "mean_reproj_px")},
                             "sequences": reg.get("sequences"),
-                            **{k: gt.get(k) for k in ("n_registered", "n_images", "median_reproj_px",
+                            **{k: gt.get(k) for k in ("n_registered", "n_unverified", "n_images", "median_reproj_px",
                                                       "median_tiepoint_reproj_px", "median_pos_err_m",
                                                       "median_rot_err_deg", "point_cloud_comparison")}}
     ov = _load(paths.reports / "overlays" / "alignment.json")
@@ -111,7 +111,8 @@ def _print_summary(s: dict) -> None:
     print("\n== gtkit on", s["project"])
     print(f"pseudo-GT     {pg.get('n_registered')}/{pg.get('n_images')} query images registered, "
           f"median error {f(pg.get('median_pos_err_m'))} m / {f(pg.get('median_rot_err_deg'))} deg vs truth, "
-          f"reprojection {f(pg.get('median_reproj_px'), '{:.2f}')} px (tie points {f(pg.get('median_tiepoint_reproj_px'), '{:.2f}')} px)")
+          f"reprojection {f(pg.get('median_reproj_px'), '{:.2f}')} px (tie points {f(pg.get('median_tiepoint_reproj_px'), '{:.2f}')} px)"
+          + (f"; {pg['n_unverified']} UNVERIFIED (no sigma)" if pg.get("n_unverified") else ""))
     print(f"overlays      median misalignment {f((s.get('overlays') or {}).get('median_misalignment_px'), '{:.2f}')} px")
     if loc:
         print(f"localization  recall (1m,1°)/(3m,3°)/(5m,5°) = {100 * loc['recall_1m1deg']:.1f} / "
