@@ -1,5 +1,5 @@
 """``gtkit register DIR``: registration of each query block (clicked tie points, else automatic matches)
-+ joint bundle adjustment. Exit status 1 when a sequence could not be registered (each is named with
++ joint bundle adjustment. Exit status 1 when a sequence could not be registered, or a photo has no sigma (unverified) (each is named with
 its reason and what to click)."""
 from __future__ import annotations
 
@@ -43,4 +43,7 @@ def run(args):
     for tid, b in (r.get("bad_tiepoints") or {}).items():
         print(f"  bad tie point {tid}: {b['reason']}; " + ", ".join(
             f"{c['image']} ({c['residual_px']:.0f} px)" for c in b["dropped_clicks"]))
-    return 1 if failed else 0
+    unverified = {n: i["unverified"] for n, i in (r.get("images") or {}).items() if i.get("unverified")}
+    for n, why in sorted(unverified.items()):   # a pose without sigma is not a result
+        print(f"  UNVERIFIED {n}: {why}")
+    return 1 if failed or unverified else 0
