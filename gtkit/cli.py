@@ -30,7 +30,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      "for UAV 6-DoF visual localization.")
     parser.add_argument("--version", action="version", version=f"gtkit {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true",
-                        help="debug logging; COLMAP, Open3D and Qt output on the terminal (else in work/<stage>/log.txt)")
+                        help="every log record (debug and info) and COLMAP, Open3D and Qt output on the terminal "
+                             "(else only warnings there, the rest in work/<stage>/log.txt)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if not mod.name.startswith("_"):
