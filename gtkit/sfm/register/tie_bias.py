@@ -106,9 +106,8 @@ def tie_test_words(c: dict) -> str:
     return words
 
 
-def _held_by_smooth(clicks: dict, auto: set[str], rough: set[str], seqs, min_smooth: int) -> dict[str, int]:
-    """Per sequence, the median number of automatic ties on smooth surface its photos hold
-    (the sequences whose photos hold ``min_smooth`` or more are those the smooth ties alone can hold)."""
+def _smooth_ties_per_photo(clicks: dict, auto: set[str], rough: set[str], seqs) -> dict[str, int]:
+    """Per sequence, the median number of automatic ties not off smooth surface its photos hold."""
     per_photo: dict[str, int] = {}
     for tid, obs in clicks.items():
         if tid in auto and tid not in rough:
@@ -132,7 +131,7 @@ def _adjust_choosing_ties(ref_rec, blocks, statuses, clicks: dict, auto: set[str
     if not rough:
         return (*_adjust(ref_rec, blocks, statuses, clicks, auto, settings, calibrate), {})
     ss = settings.smooth_surface
-    n_smooth = _held_by_smooth(clicks, auto, rough, blocks, ss.min_smooth)
+    n_smooth = _smooth_ties_per_photo(clicks, auto, rough, blocks)
     held = {q for q, n in n_smooth.items() if n >= ss.min_smooth}
     choice = {q: {"smooth_only": False, "shift_m": None, "limit_m": None, "smooth_ties_per_photo": n,
                   "undecided": f"all automatic ties kept: {n} on smooth surface a photo (median), "
