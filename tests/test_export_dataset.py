@@ -223,7 +223,8 @@ def one_line(r) -> str:
 
 
 def test_bad_input_is_one_line_and_nothing_is_half_written(site, exported, tiny_sample, tmp_path):
-    bare = tiny_sample[0]        # the sample as generated: no pseudo-GT
+    bare = tmp_path / "bare"     # the sample as generated: no pseudo-GT (a copy: the command takes its lock)
+    shutil.copytree(tiny_sample[0], bare, ignore=shutil.ignore_patterns("work", "reports", "exports"))
     line = one_line(run_cli("export", "dataset", bare, tmp_path / "a"))
     assert "work/register/poses.txt" in line and "no pseudo-GT" in line, line
     assert not (tmp_path / "a").exists()
