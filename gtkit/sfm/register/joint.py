@@ -209,11 +209,14 @@ def _median_depth(rec, im) -> float:
     return float(np.median(X @ M[:, :3].T[:, 2] + M[2, 3]))
 
 
-def point_reprojection_errors(rec, point_ids) -> np.ndarray:
+def point_reprojection_errors(rec, point_ids, image_ids: set[int] | None = None) -> np.ndarray:
+    """Reprojection errors (px) of the points' observations (only those in ``image_ids`` where given)."""
     errs = []
     for pid in point_ids:
         p = rec.points3D[pid]
         for e in p.track.elements:
+            if image_ids is not None and e.image_id not in image_ids:
+                continue
             im = rec.images[e.image_id]
             proj = im.project_point(p.xyz)
             errs.append(np.inf if proj is None else float(np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy)))
@@ -221,11 +224,11 @@ def point_reprojection_errors(rec, point_ids) -> np.ndarray:
 
 
 
-def ties_per_photo(j: Joint, seq: str, auto_only: bool = True) -> int:
-    """The median number of (automatic) tie points the photos of ``seq`` observe in the joint model now."""
+def ties_per_photo(j: Joint, seq: str) -> int:
+    """The median number of automatic tie points the photos of ``seq`` observe in the joint model now."""
     counts = {n: 0 for n in j.image_ids if n.startswith(f"queries/{seq}/")}
     for tid, pid in j.tie_pids.items():
-        if auto_only and not tid.startswith(AUTO_PREFIX):
+        if not tid.startswith(AUTO_PREFIX):
             continue
         for e in j.rec.points3D[pid].track.elements:
             n = j.rec.images[e.image_id].name
@@ -236,16 +239,9 @@ def ties_per_photo(j: Joint, seq: str, auto_only: bool = True) -> int:
 
 def _seq_tie_residual(rec, j: Joint, seq: str) -> float:
     """Median reprojection error (px) of the tie points' observations in the photos of ``seq``."""
-    ids = {j.image_ids[n] for n in j.image_ids if n.startswith(f"queries/{seq}/")}
-    errs = []
-    for pid in j.tie_pids.values():
-        p = rec.points3D[pid]
-        for e in p.track.elements:
-            if e.image_id in ids:
-                im = rec.images[e.image_id]
-                proj = im.project_point(p.xyz)
-                errs.append(np.inf if proj is None else float(np.linalg.norm(np.asarray(proj) - im.points2D[e.point2D_idx].xy)))
-    return float(np.median(errs)) if errs else np.inf
+    ids = {iid for n, iid in j.image_ids.items() if n.startswith(f"queries/{seq}/")}
+    errs = point_reprojection_errors(rec, j.tie_pids.values(), ids)
+    return float(np.median(errs)) if len(errs) else np.inf
 
 
 def _calibration_helps(j: Joint, seq: str, settings: RegisterSettings) -> bool:

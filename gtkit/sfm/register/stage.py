@@ -180,14 +180,14 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     j, summary, cov, dropped, auto_choice = _adjust_choosing_ties(ref.rec, blocks, placed.statuses, clicks, set(auto),
                                                                  rough, settings, calibrate)
     for q, c in calibration.items():
+        n_ties = c["automatic_ties_per_photo"] = ties_per_photo(j, q)
         if j.seq_cams.get(q) and j.seq_cams[q] <= j.calibrated:
             c["source"] = "calibrated from the reference's 3D points" + (f", starting from {c['start']}" if "start" in c else "")
-        elif "start" in c and ties_per_photo(j, q) >= settings.calibrate_from_ties:
+        elif "start" in c and n_ties >= settings.calibrate_from_ties:
             c["source"] = c.pop("start") + ", confirmed by the ties"
         elif q in calibrate:
-            c["why_not_from_reference"] = (f"{ties_per_photo(j, q)} automatic ties a photo, "
+            c["why_not_from_reference"] = (f"{n_ties} automatic ties a photo, "
                                            f"{settings.calibrate_from_ties} needed to calibrate from them")
-        c["automatic_ties_per_photo"] = ties_per_photo(j, q)
         placed.report[q]["calibration"] = c
     auto = {t: v for t, v in auto.items() if t in j.clicks}
     # the sequences whose automatic ties off smooth surface were dropped
