@@ -21,6 +21,7 @@ import pycolmap
 from ...pose import Pose
 from ..crossmatch import photo_features
 from ..extend_reference import register_into_reference
+from ..geometry import model_cameras
 from .bootstrap import Bootstrap, bootstrap_sequence
 
 log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
@@ -31,23 +32,25 @@ def _words(desc: np.ndarray, vocab: np.ndarray) -> np.ndarray:
     return np.argmin(d2, axis=1)
 
 
+def sampled(desc: np.ndarray, n: int, rng) -> np.ndarray:
+    """At most ``n`` of a photo's descriptors (float32), drawn at random: what the ranking uses of it."""
+    desc = np.asarray(desc, np.float32)
+    return desc[rng.choice(len(desc), n, replace=False)] if len(desc) > n else desc
+
+
 def rank_reference_photos(query: dict[str, np.ndarray], reference: dict[str, np.ndarray], k: int, n_words: int,
-                          per_photo: int, seed: int = 0) -> dict[str, list[str]]:
+                          seed: int = 0) -> dict[str, list[str]]:
     """{query photo: the ``k`` reference photos most alike}, by tf-idf histograms of visual words (a
-    vocabulary of ``n_words`` k-means centres over up to ``per_photo`` descriptors a reference photo)."""
+    vocabulary of ``n_words`` k-means centres over the reference photos' descriptors: each photo's
+    already :func:`sampled`, so a large block's descriptors are never all in memory at once)."""
     from scipy.cluster.vq import kmeans2
 
-    rng = np.random.default_rng(seed)
-
-    def sample(d):
-        return d[rng.choice(len(d), per_photo, replace=False)] if len(d) > per_photo else d
-
     ref_names = sorted(reference)
-    pool = np.vstack([sample(reference[n]) for n in ref_names]).astype(np.float32)
+    pool = np.vstack([reference[n] for n in ref_names])
     vocab, _ = kmeans2(pool, min(n_words, len(pool)), seed=seed, minit="++", iter=10)
 
     def hist(d):
-        return np.bincount(_words(sample(d).astype(np.float32), vocab), minlength=len(vocab)).astype(float)
+        return np.bincount(_words(d, vocab), minlength=len(vocab)).astype(float)
 
     R = np.array([hist(reference[n]) for n in ref_names])
     idf = np.log(len(R) / (1.0 + (R > 0).sum(0)))
@@ -74,21 +77,15 @@ def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, setti
         near = {n: refs for n in names}
         how = f"all {len(refs)} reference photos"
     else:
-        feats = {n: photo_features(db, n) for n in names}
-        ref_feats = {}
-        with pycolmap.Database.open(ref.db) as d:
-            for r in refs:
-                de = d.read_descriptors(d.read_image_with_name(r).image_id)
-                ref_feats[r] = np.asarray(de.data if hasattr(de, "data") else de, np.float32)
-        near = rank_reference_photos({n: f[1] for n, f in feats.items() if f is not None}, ref_feats, u.top_k,
-                                     u.words, u.sample_per_photo)
+        rng = np.random.default_rng(0)
+        query = {n: sampled(f[1], u.sample_per_photo, rng) for n in names if (f := photo_features(db, n)) is not None}
+        reference = {r: sampled(photo_features(ref.db, r)[1], u.sample_per_photo, rng) for r in refs}
+        near = rank_reference_photos(query, reference, u.top_k, u.words)
         how = f"the {u.top_k} of {len(refs)} reference photos ranked first by visual words"
     pairs = [(n, r) for n in names for r in near.get(n, [])]
     pairs += [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
-    cams = {n: qrec.cameras[qrec.find_image_with_name(n).camera_id] for n in names}
-    from ...camera import Camera
-
-    ext = register_into_reference(ref.rec, ref.db, {n: (Camera.from_pycolmap(cams[n]), db) for n in names}, pairs,
+    cams = model_cameras(qrec)
+    ext = register_into_reference(ref.rec, ref.db, {n: (cams[n], db) for n in names}, pairs,
                                   ref.P.images, ref.P.stage("register") / "unguided" / seq,
                                   num_threads=settings.num_threads, reproducible=settings.reproducible)
     found: dict[str, tuple[Pose, np.ndarray, np.ndarray]] = {}
