@@ -60,15 +60,10 @@ def usable_covariance(c) -> bool:
 
 
 def _flagged_unverified(info: dict | None) -> str | None:
-    """A record entry's own word that the pose is unverified (fields read defensively: the
-    registration may or may not write them)."""
-    if not isinstance(info, dict):
-        return None
-    flag = info.get("unverified")         # gtkit register writes the reason there (issue 55)
-    if flag or info.get("verified") is False or info.get("status") == UNVERIFIED:
-        why = flag if isinstance(flag, str) and flag else info.get("reason")
-        return f"flagged unverified by the registration{f' ({why})' if isinstance(why, str) and why else ''}"
-    return None
+    """The registration record's word that a photo's pose is unverified (``unverified``: its reason,
+    written by gtkit register where the BA gave it no covariance, issue 55), or None."""
+    why = (info or {}).get("unverified")
+    return f"flagged unverified by the registration ({why})" if why else None
 
 
 def load_json(path: Path) -> dict:
@@ -102,13 +97,12 @@ def collect(project: Project) -> PublishedGT:
     covs = read_covariances(cov_file) if cov_file.is_file() else {}
     reg = record.read_registration(P.registration) or {}
     images = reg.get("images") or {}
-    report = (load_json(P.reports / "gt_report.json").get("per_image") or {})
     review = read_review(P.review)
     gt = PublishedGT({}, {}, {})
     for name in sorted(poses):
         gt.sequences[name] = (images.get(name) or {}).get("sequence") or _sequence_of(name)
         verdict = (review.get(name) or {}).get("status")
-        flag = _flagged_unverified(images.get(name)) or _flagged_unverified(report.get(name))
+        flag = _flagged_unverified(images.get(name))
         if verdict in REFUSING_VERDICTS:
             gt.kept_out[name] = (REFUSED, f"marked '{verdict}' in review.json")
         elif flag:
