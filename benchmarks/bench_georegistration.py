@@ -13,7 +13,10 @@ Each row: the fit chosen (mode, and why, shortened), what it used, the block aga
 heading, median horizontal / vertical camera-centre offset; shape = centres after the best
 similarity, the SfM's own error), the accuracy claimed (h / v, 1 sigma), and a verdict: ``ok``
 (offsets within 3 x the claim + the shape error, tilt < 2 deg), ``WRONG`` (placed, outside its
-claim), or ``refused`` with its one-line cause.
+claim), or ``refused`` with its one-line cause. Then the accuracy the block itself claims (its
+georegistration's ``claimed_accuracy`` record, issue 57: h / v 1 sigma and its source) and whether
+it covers the truth (``gtkit.evaluate.gt_report.claim_covers``: the median horizontal / vertical
+camera-centre offsets within 3 x the claim; the two ratios in sigmas).
 
     python benchmarks/bench_georegistration.py --seeds 0 1 2 [--variants rtk consumer facade-proxy ...] \
         [--work W] [--no-prior-ba] [--json out.json]
@@ -158,6 +161,20 @@ def _f(v, nd=3):
     return "-" if v is None else f"{v:.{nd}f}"
 
 
+def claim_cells(r: dict) -> tuple[str, str, bool | None]:
+    """The block's own claim (h / v, source) and whether it covers the truth (None: nothing to judge)."""
+    from gtkit.evaluate.gt_report import claim_covers
+
+    c, e = (r["geo"] or {}).get("claimed_accuracy"), r["errors"]
+    if not c:
+        return "-", "-", None
+    claim = f"{c['h_m']:.3g} / {c['v_m']:.3g} ({c['source']}{', weak' if c.get('weak') else ''})"
+    if not e:
+        return claim, "-", None
+    cov = claim_covers(e["horizontal_m"], e["vertical_m"], c)
+    return claim, f"{'yes' if cov['covered'] else 'NO'} ({cov['ratio_h']:.2g} / {cov['ratio_v']:.2g})", cov["covered"]
+
+
 def print_row(r: dict) -> None:
     geo, e = r["geo"], r["errors"] or {}
     verdict = _verdict(r["errors"], geo, r.get("lever"))
@@ -170,7 +187,8 @@ def print_row(r: dict) -> None:
     h, v = _claims(geo, r.get("lever")) if "error" not in geo else (None, None)
     print(f"| {r['variant']} | {r['seed']} | {r.get('n_registered')}/{r.get('n_images')} | {geo.get('used', '-')} | {fit} | "
           f"{_f(e.get('tilt_deg'), 3)} / {_f(e.get('heading_deg'), 3)} | {_f(e.get('horizontal_m'))} / {_f(e.get('vertical_m'))} | "
-          f"{_f(e.get('shape_m'))} | {_f(h)} / {_f(v)} | {verdict} | {r['seconds']:.0f} |", flush=True)
+          f"{_f(e.get('shape_m'))} | {_f(h)} / {_f(v)} | {verdict} | {r['seconds']:.0f} | {' | '.join(claim_cells(r)[:2])} |",
+          flush=True)
 
 
 def main(argv=None) -> int:
@@ -188,8 +206,8 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     print(f"tiny preset; seeds {a.seeds}; pose-prior BA {'off' if a.no_prior_ba else 'on (default)'}; work {work}")
     print("| variant | seed | photos | used | fit chosen: why | tilt / heading (deg) | horiz / vert (m) | shape (m) "
-          "| claimed h / v (m) | verdict | s |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "| claimed h / v (m) | verdict | s | block's own claim h / v (m, source) | claim covers truth (h / v sigmas) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     rows = []
     for seed in a.seeds:
         base = work / f"base_{seed}"
@@ -204,7 +222,8 @@ def main(argv=None) -> int:
         a.json.write_text(json.dumps(rows, indent=1, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
     n_wrong = sum(_verdict(r["errors"], r["geo"], r.get("lever")) == "WRONG" for r in rows)
     print(f"\n{len(rows)} rows: {sum(_verdict(r['errors'], r['geo'], r.get('lever')) == 'ok' for r in rows)} ok, "
-          f"{sum('error' in r['geo'] for r in rows)} refused, {n_wrong} WRONG")
+          f"{sum('error' in r['geo'] for r in rows)} refused, {n_wrong} WRONG; the block's own claim covers the truth in "
+          f"{sum(claim_cells(r)[2] is True for r in rows)} of {sum(claim_cells(r)[2] is not None for r in rows)} placed rows")
     return 0
 
 

@@ -55,12 +55,15 @@ def _print_reference(r: dict) -> None:
     if geo.get("checkpoint_median_err_m") is not None:
         line += f"; check points {geo['checkpoint_median_err_m']:.3f} m"
     print(line)
+    claim = geo.get("claimed_accuracy")   # the georegistration's record (gtkit.sfm.georegister.accuracy_claim)
     if q and not geo.get("n_gcp_in_fit"):
         print(f"  GPS: {q.get('n_inliers')}/{q.get('n_positions')} positions kept, residual median "
               f"{q.get('horizontal_residual_median_m') or 0:.2f} m horizontal / {q.get('vertical_residual_median_m') or 0:.2f} m vertical"
               + (f", altitude drift {q['altitude_drift_m']:+.1f} m" if q.get("altitude_drift_m") else "")
-              + f"; absolute accuracy ~{q.get('absolute_accuracy_h_m') or 0:.1f} m horizontal, "
-              f"~{q.get('absolute_accuracy_v_m') or 0:.1f} m vertical")
+              + ("" if claim else f"; absolute accuracy ~{q.get('absolute_accuracy_h_m') or 0:.1f} m horizontal, "
+                 f"~{q.get('absolute_accuracy_v_m') or 0:.1f} m vertical"))
+    if claim:
+        print(f"  {claim['line']}")
     for name, g in (geo.get("gcp_residuals") or {}).items():
         kind = "check point" if g.get("check") else ("GCP (outlier)" if g.get("outlier") else "GCP")
         print(f"  {kind} {name}: " + (f"{g['err_m']:.3f} m (dx {g['dx_m']:+.3f} dy {g['dy_m']:+.3f} dz {g['dz_m']:+.3f})"

@@ -100,6 +100,23 @@ def cloud_offsets(points: np.ndarray, cloud: np.ndarray, k: int = 8, iterations:
                       "translation-only ICP (median of nearest-neighbour offsets, vertical offset removed first)"}
 
 
+COVER_SIGMAS = 3.0   # a 1-sigma claim covers an offset within 3 sigma (99 % of a 2-D, 99.7 % of a 1-D Gaussian)
+
+
+def claim_covers(horizontal_m: float, vertical_m: float, claim: dict) -> dict:
+    """Whether a block's measured offset (horizontal, vertical: from truth, check points or an
+    independent cloud) lies within ``COVER_SIGMAS`` times the accuracy it claims (the
+    georegistration's ``claimed_accuracy`` record, 1 sigma), and by what ratio."""
+    rh = horizontal_m / max(claim["h_m"], 1e-9)
+    rv = vertical_m / max(claim["v_m"], 1e-9)
+    ok = rh <= COVER_SIGMAS and rv <= COVER_SIGMAS
+    return {"covered": bool(ok), "horizontal_m": horizontal_m, "vertical_m": vertical_m,
+            "ratio_h": round(rh, 2), "ratio_v": round(rv, 2),
+            "line": (f"{horizontal_m:.3f} m horizontal / {vertical_m:.3f} m vertical against ~{claim['h_m']:.3g} / "
+                     f"~{claim['v_m']:.3g} m claimed ({claim['source']}): "
+                     + ("covered" if ok else "NOT covered") + f" ({rh:.2g} / {rv:.2g} sigma)")}
+
+
 # --- ``gtkit report``: the pseudo-GT report (gtkit.sfm.report) plus the checks made here --------
 
 @dataclass
@@ -153,6 +170,14 @@ def run(project, settings: ReportSettings) -> dict:
             rep["reference_median_pos_err_m"], rep["reference_median_rot_err_deg"] = rt["median_pos_err_m"], rt["median_rot_err_deg"]
             checks["rows"].append(f"| reference block vs truth | {_fmt(rep['reference_median_pos_err_m'])} m, "
                                   f"{_fmt(rep['reference_median_rot_err_deg'])} ° |")
+            claim = ((rep["reference_block"].get("georegistration") or {}).get("claimed_accuracy"))
+            if claim:
+                from .poses import block_frame_errors
+
+                fe = block_frame_errors(rp, read_poses(truth))
+                if fe:
+                    cov = rep["claim_vs_truth"] = claim_covers(fe["horizontal_m"], fe["vertical_m"], claim)
+                    checks["rows"].append(f"| reference block's offset from truth vs the accuracy it claims | {cov['line']} |")
         checks["plots"].append(("position error vs truth per query photo", "pos_err_m", "gt_pos_err.svg", 0.10))
         checks["columns"] += [("pos_err_m", "pos err m"), ("rot_err_deg", "rot err °")]
     guide = P.stage(REGISTER_STAGE) / GUIDANCE_FILE
@@ -174,6 +199,10 @@ def run(project, settings: ReportSettings) -> dict:
         checks["rows"] += [f"| vertical offset from {name} | {pc['vertical_offset_m']:+.3f} m (median) |",
                            f"| horizontal offset from {name} | {pc['horizontal_offset_m']:.3f} m "
                            f"(dx {pc['horizontal_offset_xy_m'][0]:+.3f}, dy {pc['horizontal_offset_xy_m'][1]:+.3f}) |"]
+        claim = ((rep["reference_block"].get("georegistration") or {}).get("claimed_accuracy"))
+        if claim:
+            cov = pc["claim"] = claim_covers(pc["horizontal_offset_m"], abs(pc["vertical_offset_m"]), claim)
+            checks["rows"].append(f"| offset from {name} vs the accuracy the block claims | {cov['line']} |")
         checks["after_table"] += ["", f"Method: {pc['method']}."]
     return report.write(project, rep, checks)
 

@@ -9,7 +9,7 @@ from ..project import Paths
 
 GEO_KEYS = ("used", "fitted_to", "fit", "gps_quality", "plausibility", "n_inliers", "n_gps", "n_gcp_in_fit", "n_checkpoints", "gcp_threshold_m",
             "gcp_median_err_m", "gcp_rmse_m", "checkpoint_median_err_m", "checkpoint_rmse_m", "outliers", "error",
-            "gcp_click_scale", "gcp_click_threshold")
+            "gcp_click_scale", "gcp_click_threshold", "claimed_accuracy")
 
 
 def reference_report(summary: dict) -> dict:
@@ -44,8 +44,10 @@ def _f(v, nd=3):
     return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else str(v))
 
 
-def _fit_lines(fit: dict, q: dict | None, plaus: dict | None) -> list[str]:
-    """The georegistration's method, the GPS quality and what the block can claim, in words."""
+def _fit_lines(fit: dict, q: dict | None, plaus: dict | None, claim: dict | None = None) -> list[str]:
+    """The georegistration's method, the GPS quality and what the block can claim, in words
+    (``claim``: the georegistration's ``claimed_accuracy`` record; a block made before it had one:
+    the GPS quality's figures as they were)."""
     out = []
     if fit.get("mode") == "gravity-held":
         out.append(f"- tilt held by gravity ({fit.get('tilt_from')}, spread {_f(fit['up']['spread_deg'], 2)} deg over "
@@ -60,6 +62,11 @@ def _fit_lines(fit: dict, q: dict | None, plaus: dict | None) -> list[str]:
                    f"({_f(100 * (q.get('share_kept') or 0), 0)} %); residual median "
                    f"{_f(q.get('horizontal_residual_median_m'), 2)} m horizontal, {_f(q.get('vertical_residual_median_m'), 2)} m "
                    "vertical" + (f"; the altitudes drift {drift:+.1f} m over the flight (taken out)" if drift else ""))
+    if claim:
+        out.append(f"- absolute accuracy the site can claim: {claim['line'].removeprefix('absolute accuracy ')}"
+                   + (f"; heading to ~{_f(q.get('heading_precision_deg'), 2)} deg" if q and q.get("heading_precision_deg")
+                      else ""))
+    elif q:
         out.append(f"- absolute accuracy the site can claim (1 sigma, from the GPS): ~{_f(q.get('absolute_accuracy_h_m'), 1)} m "
                    f"horizontal, ~{_f(q.get('absolute_accuracy_v_m'), 1)} m vertical"
                    + (f"; heading to ~{_f(q.get('heading_precision_deg'), 2)} deg" if q.get("heading_precision_deg") else "")
@@ -147,7 +154,7 @@ def write_reference_report(paths: Paths, summary: dict) -> dict:
     else:
         lines += [f"- fitted to: {g.get('fitted_to') or g.get('used')} ({g.get('n_gps')} GPS positions and "
                   f"{g.get('n_gcp_in_fit')} GCPs given, {g.get('n_checkpoints')} check points); RMSE {_f(g.get('rmse_m'))} m"]
-        lines += _fit_lines(g.get("fit") or {}, g.get("gps_quality"), g.get("plausibility"))
+        lines += _fit_lines(g.get("fit") or {}, g.get("gps_quality"), g.get("plausibility"), g.get("claimed_accuracy"))
         if (g.get("gcp_click_scale") or {}).get("line"):
             lines.append(f"- GCP clicks: {g['gcp_click_scale']['line']}")
         if g.get("n_gcp_in_fit") or g.get("n_checkpoints"):

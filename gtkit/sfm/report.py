@@ -140,6 +140,9 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
               f"| georegistration ({geo.get('used')}) | RMSE {_fmt(geo.get('rmse_inliers_m'))} m over "
               f"{geo.get('n_inliers')} inliers |",
               f"| GCP residual median / RMSE | {_fmt(geo.get('gcp_median_err_m'))} m / {_fmt(geo.get('gcp_rmse_m'))} m |"]
+        claim = geo.get("claimed_accuracy")   # gtkit.sfm.georegister.accuracy_claim's record
+        if claim:
+            L.append(f"| site's absolute accuracy (reference block, 1 sigma) | {claim['line'].removeprefix('absolute accuracy ')} |")
     L += list(checks.get("after_table", []))
     if ref and ref.get("georegistration", {}).get("gcp_residuals"):
         L += ["", "## GCP residuals", "", "| GCP | dx m | dy m | dz m | error m | clicks used |", "|---|---|---|---|---|---|"]
