@@ -223,6 +223,8 @@ def evaluate_tracking(paths: Paths | str | Path, tracks: Path | None = None, out
             t = float(r["time"]) - truth.epoch if float(r["time"]) > 1e8 else float(r["time"])
         X = truth.at(r["label"], t) if t is not None else None
         rec = {"image": r["image"], "label": r["label"], "time_s": t, "status": r["status"]}
+        if r.get("on_filled_dsm") == "1":
+            rec["on_filled_dsm"] = True
         if X is None:
             rec["note"] = "no true position at this time (unknown label or time)"
         if r["status"] == "ok" and X is not None:
@@ -244,6 +246,10 @@ def evaluate_tracking(paths: Paths | str | Path, tracks: Path | None = None, out
     rep = {"label": label, "tracks": str(tracks), "n_targets": len(per),
            "n_failed": sum(1 for r in per if r["status"] != "ok"),
            "failures": {}, **_stats(eh, "h"), **_stats(e3, "3d")}
+    filled = [r for r in per if r.get("on_filled_dsm")]
+    rep["n_on_filled_dsm"] = len(filled)   # placed on DSM cells interpolated over a gap (tracks.csv on_filled_dsm)
+    if filled:
+        rep["on_filled_dsm"] = _stats([r.get("err_h_m") for r in filled], "h")
     for r in per:
         if r["status"] != "ok":
             rep["failures"][r["status"]] = rep["failures"].get(r["status"], 0) + 1
@@ -287,6 +293,9 @@ def readable(rep: dict) -> str:
              f"(p90 horizontal {f(rep['p90_err_h_m'])} m)",
              "- recall (horizontal): " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in rep["recall_h"].items()),
              "- recall (3D): " + ", ".join(f"{k} {100 * v:.0f}%" for k, v in rep["recall_3d"].items())]
+    if rep.get("n_on_filled_dsm"):
+        lines.append(f"- on filled DSM cells (interpolated over a gap): {rep['n_on_filled_dsm']} detections, median "
+                     f"horizontal {f(rep['on_filled_dsm']['median_err_h_m'])} m")
     if rep.get("smoothed"):
         sm = rep["smoothed"]
         lines.append(f"- smoothed track: median horizontal {f(sm['median_err_h_m'])} m, 3D {f(sm['median_err_3d_m'])} m")

@@ -37,6 +37,7 @@ from ..project import Project, settings_dict
 from .geotiff import write_geotiff
 from .grid import Grid, nice_resolution
 from .sources import load_surface, run_raster_stage
+from .gapfill import Cameras, fill_gaps, project_cameras
 from .surface import MeshSurface, ObjMeshSurface, PointSurface, SurfaceRaster, TiledSurface, rasterize_surface
 
 log = logging.getLogger(__name__)
@@ -50,8 +51,14 @@ MAX_DEFAULT_CELLS = 25_000_000
 class DsmSettings:
     resolution: float | None = None  # metres per cell; None = 2 x the source's detail, rounded to 1/2/2.5/5 x 10^k
     cog: bool = False                # write a cloud-optimised GeoTIFF (internal overviews)
-    fill_holes: int = 2              # passes of small-hole filling (empty cells with >= 5 of 8 filled neighbours)
+    fill_holes: int = 2              # passes of small-hole filling (empty cells with >= 5 of 8 filled neighbours),
+                                     # after the gap fill (so: outside the footprint, or all with gap_fill off)
     nodata: float = -9999.0          # value of empty cells in the file (read back as NaN by Dsm)
+    # gaps (no surface: plain grass, water) filled by harmonic interpolation from their border, only
+    # inside the ground the reference photos saw (gtkit.export.gapfill); filled cells are 1 in band 2
+    gap_fill: bool = True
+    gap_fill_max_m: float = 0.0      # leave cells farther than this from a measured cell empty (0 = any)
+    footprint_views: int = 2         # ground counts as seen when it is inside >= this many reference photos
 
 
 @dataclass
@@ -81,29 +88,56 @@ def plan_grid(source: MeshSurface | ObjMeshSurface | TiledSurface | PointSurface
     return RasterPlan(grid, detail, clamped)
 
 
-def write_dsm(path: Path, surf: SurfaceRaster, frame: GeoFrame, settings: DsmSettings, tags: dict) -> Path:
-    """Write heights (world z -> CRS heights) as a float32 GeoTIFF with nodata."""
+FILLED_NOTE = ("band 2 'filled': 1 where the height is interpolated from the gap's border (no surface was "
+               "measured there), 0 where measured, nodata where band 1 is empty")
+
+
+def write_dsm(path: Path, surf: SurfaceRaster, frame: GeoFrame, settings: DsmSettings, tags: dict,
+              filled: np.ndarray | None = None) -> Path:
+    """Write heights (world z -> CRS heights) as a float32 GeoTIFF with nodata; band 2 ``filled``
+    (1 = interpolated, 0 = measured) when ``filled`` is given."""
     z = surf.height.astype(np.float64) + frame.origin[2]
-    data = np.where(np.isfinite(z), z, settings.nodata).astype(np.float32)
+    ok = np.isfinite(z)
+    data = np.where(ok, z, settings.nodata).astype(np.float32)
+    names = ["height"]
+    if filled is not None:
+        mask = np.where(ok, filled.astype(np.float32), settings.nodata).astype(np.float32)
+        data = np.stack([data, mask], axis=-1)
+        names.append("filled")
+        tags = {"GTKIT_FILLED": FILLED_NOTE, **tags}
     return write_geotiff(path, data, surf.grid, frame.crs, frame.origin, nodata=settings.nodata,
-                         cog=settings.cog, band_names=["height"], tags={
+                         cog=settings.cog, band_names=names, tags={
                              "GTKIT_PRODUCT": "DSM (highest surface per cell, sampled at cell centres)",
                              "GTKIT_UNITS": "metre", "GTKIT_HEIGHTS": HEIGHT_NOTE,
                              "GTKIT_ORIGIN": json.dumps(list(frame.origin)), **tags})
 
 
-def make_dsm(source, frame: GeoFrame, out: Path, settings: DsmSettings, source_name: str) -> dict:
-    """Rasterise ``source`` and write the DSM; returns a summary (grid, detail, coverage)."""
+def make_dsm(source, frame: GeoFrame, out: Path, settings: DsmSettings, source_name: str,
+             cameras: Cameras | None = None) -> dict:
+    """Rasterise ``source``, close small holes, fill the gaps inside the footprint of ``cameras``
+    (the reference photos; None: no gap fill) and write the DSM; returns a summary (grid, detail,
+    coverage before and after filling, the share filled)."""
     plan = plan_grid(source, frame, settings.resolution)
-    surf = rasterize_surface(source, plan.grid, fill_passes=settings.fill_holes)
+    surf = rasterize_surface(source, plan.grid)
+    gf = fill_gaps(surf.height, plan.grid, cameras, enabled=settings.gap_fill, max_distance_m=settings.gap_fill_max_m,
+                   min_views=settings.footprint_views, small_holes=settings.fill_holes)
+    surf.height = gf.height
     write_dsm(out, surf, frame, settings, {"GTKIT_SOURCE": source_name,
-                                           "GTKIT_SETTINGS": json.dumps(settings_dict(settings))})
+                                           "GTKIT_SETTINGS": json.dumps(settings_dict(settings))}, filled=gf.filled)
     valid = np.isfinite(surf.height)
     summary = {"path": str(out), "source": source_name, "kind": source.kind, "crs": crs_name(frame.crs),
                "resolution": plan.grid.res, "detail": plan.detail, "clamped": plan.clamped,
-               "width": plan.grid.width, "height": plan.grid.height, "filled_share": float(valid.mean())}
-    log.info("DSM %s: %d x %d cells at %.4g m (%s, detail %.3g m), %.1f%% filled", out, plan.grid.width,
-             plan.grid.height, plan.grid.res, source.kind, plan.detail, 100 * valid.mean())
+               "width": plan.grid.width, "height": plan.grid.height, "valid_share": float(valid.mean()),
+               **gf.summary}
+    fs = gf.summary
+    pct = (lambda v: "n/a" if v is None else f"{100 * v:.1f}%")
+    log.info("DSM %s: %d x %d cells at %.4g m (%s, detail %.3g m), %.1f%% of the box valid; inside the flown area "
+             "(%s) %s valid as measured, %s after filling; %d cells filled (%s of the valid cells)%s", out,
+             plan.grid.width, plan.grid.height, plan.grid.res, source.kind, plan.detail, 100 * valid.mean(),
+             fs["flown_area"], pct(fs["valid_share_flown_before"]), pct(fs["valid_share_flown_after"]),
+             fs["filled_cells"], pct(fs["filled_share"]),
+             "" if fs["gap_fill"] else " (gap fill off" + ("" if settings.gap_fill else " by setting")
+             + ("; no reference block: footprint unknown" if cameras is None else "") + ")")
     return summary
 
 
@@ -112,8 +146,14 @@ def run(project: Project | str | Path, settings: DsmSettings, input: str | Path 
     """The DSM stage of a project: the reference model (or ``input``) -> ``exports/dsm.tif``.
     Skips when the output exists and settings and inputs are unchanged."""
     proj = project if isinstance(project, Project) else Project.load(project)
-    return run_raster_stage(proj, settings, input, crs, offset, out, default_out=proj.paths.dsm, stage=STAGE,
-                            make=make_dsm, label="DSM", textures=False)
+    P = proj.paths
+    cams = [P.reference_poses, P.reference_intrinsics] if settings.gap_fill else []
+
+    def make(source, frame, out, s, name):
+        return make_dsm(source, frame, out, s, name, cameras=project_cameras(proj) if s.gap_fill else None)
+
+    return run_raster_stage(proj, settings, input, crs, offset, out, default_out=P.dsm, stage=STAGE,
+                            make=make, label="DSM", textures=False, extra_files=cams)
 
 
 def run_file(input: str | Path, out: str | Path, settings: DsmSettings, crs: str | None = None,
@@ -131,13 +171,17 @@ class Dsm:
     """A DSM in a world frame: ``heights[i, j]`` is the surface at the centre of cell (i, j) of
     ``grid`` (world z; NaN where empty). Open one with :meth:`open`."""
 
-    def __init__(self, heights: np.ndarray, grid: Grid, frame: GeoFrame, path: Path | None = None):
+    def __init__(self, heights: np.ndarray, grid: Grid, frame: GeoFrame, path: Path | None = None,
+                 filled: np.ndarray | None = None):
         if heights.shape != grid.shape:
             raise GtkitError(f"heights {heights.shape} do not match the grid {grid.shape}", path)
         self.heights = heights
         self.grid = grid
         self.frame = frame
         self.path = path
+        # True where the height was interpolated over a gap (the file's band 'filled'); all False
+        # for a DSM without that band
+        self.filled = np.zeros(grid.shape, bool) if filled is None else np.asarray(filled, bool)
 
     @classmethod
     def open(cls, path: str | Path, frame: GeoFrame | None = None) -> "Dsm":
@@ -154,6 +198,10 @@ class Dsm:
                 if src.crs is None:
                     raise GtkitError("DSM has no CRS", path)
                 a = src.read(1).astype(np.float64)
+                filled = None
+                if src.count >= 2 and (src.descriptions[1] or "") == "filled":
+                    f = src.read(2)
+                    filled = (f == 1) & (f != src.nodata)
                 nodata = src.nodata
                 transform, w, h = src.transform, src.width, src.height
                 file_crs = src.crs.to_wkt()
@@ -170,7 +218,7 @@ class Dsm:
             a[a == nodata] = np.nan
         a[~np.isfinite(a)] = np.nan
         grid = Grid.from_transform(transform, w, h, frame.origin)
-        return cls(a - frame.origin[2], grid, frame, path)
+        return cls(a - frame.origin[2], grid, frame, path, filled=None if filled is None else filled & np.isfinite(a))
 
     @classmethod
     def for_project(cls, project: Project | str | Path) -> "Dsm":
@@ -181,6 +229,14 @@ class Dsm:
     @property
     def resolution(self) -> float:
         return self.grid.res
+
+    def filled_at(self, x, y) -> np.ndarray:
+        """Whether the cell that holds world (x, y) has an interpolated (filled) height; False
+        outside the raster."""
+        i, j, inside = self.grid.cell_of(np.atleast_1d(x), np.atleast_1d(y))
+        out = np.zeros(inside.shape, bool)
+        out[inside] = self.filled[i[inside], j[inside]]
+        return out if np.ndim(x) or np.ndim(y) else bool(out.ravel()[0])
 
     def height_at(self, x, y) -> np.ndarray:
         """Bilinear height (world z) at world (x, y) (scalars or arrays) from the cell centres.

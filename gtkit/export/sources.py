@@ -116,19 +116,22 @@ def _origin_of(xyz: np.ndarray) -> tuple[float, float, float]:
     return tuple(float(math.floor(v)) for v in lo)
 
 
-def stage_inputs(project, src: Path, crs: str | None, offset, out: Path) -> dict:
-    """What an export stage's output depends on besides its settings (its resume key)."""
-    return {"source": str(src), "files": {str(p): file_fingerprint(p) for p in input_fingerprint_paths(src)},
+def stage_inputs(project, src: Path, crs: str | None, offset, out: Path, extra_files=()) -> dict:
+    """What an export stage's output depends on besides its settings (its resume key);
+    ``extra_files``: other files it reads (the reference block's poses for the DSM's gap fill)."""
+    files = {str(p): file_fingerprint(p) for p in [*input_fingerprint_paths(src), *map(Path, extra_files)]}
+    return {"source": str(src), "files": files,
             "crs": project.frame.crs_spec, "origin": list(project.frame.origin), "given_crs": crs,
             "given_offset": None if offset is None else list(map(float, offset)), "out": str(out)}
 
 
 def run_raster_stage(project, settings, input, crs, offset, out, *, default_out: Path, stage: str,
-                     make, label: str, textures: bool = True) -> Path:
+                     make, label: str, textures: bool = True, extra_files=()) -> Path:
     """The body every raster export stage shares (DSM, orthophoto): the reference model (or
     ``input``) -> ``out`` (default ``default_out``) through ``make(source, frame, out, settings,
     name)``; skipped when the output exists and settings and inputs are unchanged. ``textures``:
-    whether ``make`` needs the model's colours (see :func:`load_surface`)."""
+    whether ``make`` needs the model's colours (see :func:`load_surface`); ``extra_files``: other
+    files ``make`` reads, part of the resume key."""
     import logging
 
     from ..project import mark_stage_done, relative_paths, stage_done
@@ -136,7 +139,7 @@ def run_raster_stage(project, settings, input, crs, offset, out, *, default_out:
     src = Path(input) if input is not None else reference_model(project.paths)
     out = Path(out) if out is not None else default_out
     stage_dir = project.paths.stage(stage)
-    inputs = stage_inputs(project, src, crs, offset, out)
+    inputs = stage_inputs(project, src, crs, offset, out, extra_files)
     if stage_done(stage_dir, settings, inputs) and out.is_file():  # stage_done first: it starts the clock and the log
         logging.getLogger(__name__).info("%s %s is up to date (settings unchanged); skipping", label, out)
         return out

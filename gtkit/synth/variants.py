@@ -43,6 +43,9 @@ no focal length anywhere, GCPs surveyed without heights. Each edits a copy in pl
   georegistration.
 - ``gcp-points`` / ``gcp-points-no-gps``: the GCPs' surveyed coordinates only (no clicks), with or
   without the photos' GPS (:mod:`gtkit.synth.gcp_points_variant`, for marking GCPs in gtkit).
+- ``plain-grass``: a square of grass without detail (half the reference flight's width across) in the
+  reference photos, re-rendered from the truth; the sample's model removed so that ``gtkit run``
+  builds one from the photos (:mod:`gtkit.synth.plain_variant`; the DSM's gaps, issue 57).
 """
 from __future__ import annotations
 
@@ -58,7 +61,8 @@ from .photo_metadata import _GPS_IFD, _rewrite, _segments, _write_segments, stri
 
 VARIANTS = ("no-gps", "no-focal", "flat-gcps", "checkpoints", "survey-geo", "no-gcps", "no-attitude", "consumer-gps",
             "query-gps-5", "query-gps-15", "nadir-heldout", "facade-proxy", "rtk-few", "gcp-half",
-            "gcp-points", "gcp-points-no-gps")   # the last two: gtkit.synth.gcp_points_variant
+            "gcp-points", "gcp-points-no-gps",   # these two: gtkit.synth.gcp_points_variant
+            "plain-grass")                       # gtkit.synth.plain_variant
 # (which photos, horizontal sigma m, altitude offset sigma m, altitude drift over the flight m, strip XMP)
 _GPS_VARIANTS = {"consumer-gps": ("all", 10.0, 10.0, 60.0, True),
                  "query-gps-5": ("queries", 5.0, 5.0, 5.0, False),
@@ -187,6 +191,10 @@ def apply_variant(root: str | Path, name: str, seed: int = 0) -> None:
         from .gcp_points_variant import apply_gcp_points_variant
 
         apply_gcp_points_variant(root, name)
+    elif name == "plain-grass":
+        from .plain_variant import apply_plain_grass
+
+        apply_plain_grass(root)
     else:
         raise ValueError(f"unknown sample variant {name!r} (known: {', '.join(VARIANTS)})")
 

@@ -9,7 +9,9 @@ misses the DSM, ...). Per label and sequence, the placed points form a track, op
 (:mod:`gtkit.track.smoothing`).
 
 Outputs: ``exports/tracks.csv`` (one row per detection: CRS and WGS84 coordinates, height,
-sigmas, status, message; smoothed coordinates when enabled), ``exports/tracks.geojson``
+sigmas, status, message; smoothed coordinates when enabled; ``on_filled_dsm`` 1 when the target
+landed on a DSM cell whose height was interpolated over a gap, not measured: see
+:mod:`gtkit.export.gapfill`), ``exports/tracks.geojson``
 (WGS84 points and one line per track), ``work/track/stage.json``.
 """
 from __future__ import annotations
@@ -166,7 +168,8 @@ def locate(dets: list[Detection], poses: dict[str, Pose], covs: dict, rig: Rig, 
             if lift:
                 p[2] = float(dsm.height_at(p[0], p[1]))
             unc = ground_point_covariance(surf, pose, rig, cam, uv, s.uncertainty, rig_sigma)
-            rec.update(status="ok", world=p, range_m=float(hits.distance[k]), cov=unc["cov"],
+            rec.update(status="ok", world=p, on_filled_dsm=bool(dsm.filled_at(p[0], p[1])),
+                       range_m=float(hits.distance[k]), cov=unc["cov"],
                        sigma_h_m=unc["sigma_h_m"], sigma_z_m=unc["sigma_z_m"], hit_share=unc["hit_share"],
                        pose_covariance="given" if pose.covariance is not None else "default")
     return recs
@@ -195,7 +198,7 @@ def add_smoothing(recs: list[dict], s: TrackSettings) -> None:
 
 COLUMNS = ["label", "time", "image", "u", "v", "status", "x", "y", "z", "lon", "lat", "h", "sigma_h_m",
            "sigma_z_m", "range_m", "smoothed_x", "smoothed_y", "smoothed_z", "smoothed_lon", "smoothed_lat",
-           "outlier", "message"]
+           "outlier", "on_filled_dsm", "message"]
 
 
 def _fmt(v, nd=3):
@@ -230,7 +233,8 @@ def write_outputs(recs: list[dict], project: Project, out_csv: Path) -> tuple[Pa
                     _fmt(r.get("sigma_h_m")), _fmt(r.get("sigma_z_m")), _fmt(r.get("range_m"), 2),
                     *([_fmt(float(v)) for v in sc] if sc is not None else ["", "", ""]),
                     *([f"{sg[0]:.8f}", f"{sg[1]:.8f}"] if sg is not None else ["", ""]),
-                    "" if "outlier" not in r else int(r["outlier"]), r["message"]])
+                    "" if "outlier" not in r else int(r["outlier"]),
+                    "" if "on_filled_dsm" not in r else int(r["on_filled_dsm"]), r["message"]])
     write_text(out_csv, buf.getvalue())
     feats = []
     for r in recs:
@@ -240,7 +244,8 @@ def write_outputs(recs: list[dict], project: Project, out_csv: Path) -> tuple[Pa
         feats.append({"type": "Feature", "geometry": {"type": "Point", "coordinates": [g[0], g[1], g[2]]},
                       "properties": {"label": r["label"], "time": r["time"], "image": r["image"],
                                      "x": float(r["crs"][0]), "y": float(r["crs"][1]), "z": float(r["crs"][2]),
-                                     "sigma_h_m": r["sigma_h_m"], "sigma_z_m": r["sigma_z_m"]}})
+                                     "sigma_h_m": r["sigma_h_m"], "sigma_z_m": r["sigma_z_m"],
+                                     "on_filled_dsm": bool(r.get("on_filled_dsm"))}})
     for label, seq in sorted({(r["label"], sequence_of(r["image"])) for r in recs}):
         rs = sorted([r for r in recs if r["label"] == label and sequence_of(r["image"]) == seq
                      and r["status"] == "ok" and r["time"] is not None], key=lambda r: r["time"])
@@ -290,11 +295,19 @@ def run(project: Project | str | Path, settings: TrackSettings, force: bool = Fa
         log.warning("track: %d detection(s) not placed (%s), e.g. %s: %s%s", len(rs), st, names[0], rs[0]["message"],
                     f"; also {', '.join(names[1:4])}{' ...' if len(names) > 4 else ''}" if len(names) > 1 else "")
     sig = [r["sigma_h_m"] for r in recs if r.get("sigma_h_m") is not None]
+    on_filled = [r for r in recs if r.get("on_filled_dsm")]
+    if on_filled:
+        log.warning("track: %d of %d placed targets landed on filled DSM cells (interpolated over a gap, no "
+                    "measured surface; column on_filled_dsm = 1), e.g. %s", len(on_filled), status.get("ok", 0),
+                    on_filled[0]["image"])
     summary = {"n_detections": len(recs), "n_located": status.get("ok", 0), "status": status,
+               "n_on_filled_dsm": len(on_filled),
                "poses": str(pose_path), "pose_covariances": str(cov_path) if cov_path.is_file() else None,
                "median_sigma_h_m": float(np.median(sig)) if sig else None, "csv": str(csv_path),
                "geojson": str(gj), "seconds": round(time.perf_counter() - t0, 3), "settings": settings_dict(s)}
     write_json(summary_path, relative_paths(summary, P.root))  # portable: paths relative to the project
-    mark_stage_done(stage_dir, s, inputs, n_located=summary["n_located"], n_detections=len(recs))
-    log.info("track: %d of %d detections located -> %s", summary["n_located"], len(recs), csv_path)
+    mark_stage_done(stage_dir, s, inputs, n_located=summary["n_located"], n_detections=len(recs),
+                    n_on_filled_dsm=len(on_filled))
+    log.info("track: %d of %d detections located (%d on filled DSM cells) -> %s", summary["n_located"], len(recs),
+             len(on_filled), csv_path)
     return summary
