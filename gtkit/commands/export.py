@@ -5,7 +5,8 @@ Examples::
 
     gtkit export dsm site [--resolution 0.5] [--cog]
     gtkit export dsm --input model.laz --crs EPSG:32615 --out dsm.tif     # a file outside a project
-    gtkit export ortho site [--resolution 0.1]
+    gtkit export dsm site [--no-gap-fill] [--gap-fill-max-m 50]              # gaps filled inside the footprint
+    gtkit export ortho site [--resolution 0.1] [--method photos|model] [--no-blend]
     gtkit export mesh site --format glb [--decimate 200000]
     gtkit export coords site [--poses work/register/poses.txt] [--targets exports/tracks.csv]
     gtkit export dataset site OUT [--format kapture,colmap,hloc] [--copy] [--with-model] [--no-depth]
@@ -45,10 +46,24 @@ def register(sub):
     d = ex.add_parser("dsm", help="digital surface model GeoTIFF (highest surface per cell)")
     _source_args(d, raster=True)
     d.add_argument("--fill-holes", type=int, default=None, help="passes of small-hole filling (0 = none; default 2)")
+    d.add_argument("--no-gap-fill", action="store_true", help="leave the gaps (cells without surface) empty; by "
+                   "default those inside the reference photos' footprint are interpolated from their border and "
+                   "marked 1 in band 2 'filled'")
+    d.add_argument("--gap-fill-max-m", type=float, default=None, help="leave cells farther than this from a measured "
+                   "cell empty (default 0 = any distance inside the footprint)")
+    d.add_argument("--footprint-views", type=int, default=None, help="reference photos that must see a cell for it "
+                   "to be filled (default 2)")
     d.set_defaults(func=run_dsm)
 
-    o = ex.add_parser("ortho", help="true orthophoto GeoTIFF (RGB + alpha) of the textured model")
+    o = ex.add_parser("ortho", help="true orthophoto GeoTIFF (RGB + alpha): the reference photos over the DSM "
+                      "(seams blended), or the textured model seen from above")
     _source_args(o, raster=True)
+    o.add_argument("--method", choices=("auto", "photos", "model"), default=None,
+                   help="photos: the reference photos over exports/dsm.tif; model: the textured model; auto "
+                   "(default): photos when the project has a reference block and a DSM")
+    o.add_argument("--no-blend", action="store_true", help="photos: no exposure compensation or feathering")
+    o.add_argument("--feather-m", type=float, default=None, help="photos: feathering band on each side of a seam "
+                   "(metres; default 0 = 8 cells)")
     o.set_defaults(func=run_ortho)
 
     m = ex.add_parser("mesh", help="textured mesh in the project CRS + offset sidecar")
@@ -100,7 +115,9 @@ def run_dsm(args):
 
     _need_project_or_out(args)
     s = _settings("export_dsm", args.project,
-                  {"resolution": args.resolution, "cog": args.cog or None, "fill_holes": args.fill_holes})
+                  {"resolution": args.resolution, "cog": args.cog or None, "fill_holes": args.fill_holes,
+                   "gap_fill": False if args.no_gap_fill else None, "gap_fill_max_m": args.gap_fill_max_m,
+                   "footprint_views": args.footprint_views})
     off = _offset(args.offset) if args.offset else None
     if args.project is None:
         out = dsm.run_file(args.input, args.out, s, args.crs, off)
@@ -114,7 +131,8 @@ def run_ortho(args):
 
     _need_project_or_out(args)
     s = _settings("export_ortho", args.project,
-                  {"resolution": args.resolution, "cog": args.cog or None})
+                  {"resolution": args.resolution, "cog": args.cog or None, "method": args.method,
+                   "blend": False if args.no_blend else None, "feather_m": args.feather_m})
     off = _offset(args.offset) if args.offset else None
     if args.project is None:
         out = ortho.run_file(args.input, args.out, s, args.crs, off)
