@@ -102,7 +102,8 @@ def anchor_features(set_dir: Path, work: Path) -> Path:
     return db
 
 
-def anchor_run(set_dir: Path, known: bool, seed: int, feat_db: Path, work: Path, refine_pp: bool = False) -> dict:
+def anchor_run(set_dir: Path, known: bool, seed: int, feat_db: Path, work: Path, refine_pp: bool = False,
+               every: int = 3) -> dict:
     """One SfM of all photos; held-out / reference centre errors (m) and held-out rotation errors (deg)."""
     import pycolmap
 
@@ -136,8 +137,8 @@ def anchor_run(set_dir: Path, known: bool, seed: int, feat_db: Path, work: Path,
     est = {im.name: (im.cam_from_world().rotation.matrix(), im.projection_center()) for im in rec.images.values()
            if im.has_pose}
     names, truth, geo = set_photos(set_dir), read_truth(set_dir), read_geo(set_dir)
-    ref = [n for i, n in enumerate(names) if i % 3 != 1 and n in est]
-    held = [n for i, n in enumerate(names) if i % 3 == 1]
+    ref = [n for i, n in enumerate(names) if i % every != 1 and n in est]
+    held = [n for i, n in enumerate(names) if i % every == 1]
     c, R, t = umeyama(np.array([est[n][1] for n in ref]), np.array([geo[n] for n in ref]))
 
     def err(n):
@@ -155,13 +156,13 @@ def anchor_run(set_dir: Path, known: bool, seed: int, feat_db: Path, work: Path,
             "reference_median_m": float(np.median([err(n)[0] for n in ref]))}
 
 
-def anchor(set_dir: Path, known: bool, runs: int, work: Path, refine_pp: bool = False) -> dict:
+def anchor(set_dir: Path, known: bool, runs: int, work: Path, refine_pp: bool = False, every: int = 3) -> dict:
     import pycolmap
 
     pycolmap.logging.minloglevel = 2   # errors only
     t = time.time()
     feat = anchor_features(set_dir, work)
-    rs = [anchor_run(set_dir, known, s, feat, work, refine_pp) for s in range(runs)]
+    rs = [anchor_run(set_dir, known, s, feat, work, refine_pp, every) for s in range(runs)]
     meds = [r["query_median_m"] for r in rs if r.get("query_median_m") is not None]
     return {"runs": rs, "median_m": float(np.median(meds)) if meds else None,
             "spread_m": float(max(meds) - min(meds)) if meds else None,
@@ -209,11 +210,13 @@ def summary(set_dir: Path, project: Path, poses: str | None = None) -> dict:
     return {k: (None if v == "-" else float(v)) for k, v in zip(keys, line.split()[1:])}
 
 
-def gtkit_case(set_dir: Path, known: bool, rtk: bool, out: Path, toml_items: list[str], env: dict) -> dict:
+def gtkit_case(set_dir: Path, known: bool, rtk: bool, out: Path, toml_items: list[str], env: dict,
+               every: int = 3) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     mk = subprocess.run([sys.executable, str(SPLIT), "make", str(set_dir), str(out)]
-                        + (["--known-intrinsics"] if known else []) + (["--query-positions", "0.02"] if rtk else []),
+                        + (["--known-intrinsics"] if known else []) + (["--query-positions", "0.02"] if rtk else [])
+                        + (["--every", str(every)] if every != 3 else []),
                         capture_output=True, text=True, check=True)
     init = shlex.split(next(ln for ln in mk.stdout.splitlines() if ln.startswith("gtkit init ")))
     project = Path(init[2])
@@ -277,6 +280,8 @@ def main(argv=None) -> int:
                     help="set in project.toml before gtkit run (repeatable)")
     ap.add_argument("--work", type=Path, default=None, help="projects and anchor SfMs kept here (default: a temp dir)")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--every", type=int, default=3,
+                    help="held-out photos: i %% EVERY == 1 (truth_split.py make --every; default 3)")
     a = ap.parse_args(argv)
     words = {w for w in a.cases.split(",") if w}
     if words - {"freeK", "knownK", "nopos", "rtk"}:
@@ -292,14 +297,15 @@ def main(argv=None) -> int:
         for k, p in cases:
             if a.anchor_runs and (name, k) not in anchors:
                 print(f"{name} {k}: anchor, {a.anchor_runs} SfM runs ...", file=sys.stderr, flush=True)
-                anchors[name, k] = anchor(set_dir, k == "knownK", a.anchor_runs, work / name / "anchor")
+                anchors[name, k] = anchor(set_dir, k == "knownK", a.anchor_runs, work / name / "anchor", every=a.every)
                 if k == "freeK":   # COLMAP's defaults hold the principal point at the centre; refined too
-                    anchors[name, "freeK+pp"] = anchor(set_dir, False, a.anchor_runs, work / name / "anchor", True)
+                    anchors[name, "freeK+pp"] = anchor(set_dir, False, a.anchor_runs, work / name / "anchor", True,
+                                                      a.every)
             # the verdict against the better of the anchors (the smaller held-out median)
             anc = min((v for (n2, k2), v in anchors.items() if n2 == name and k2.startswith(k) and v.get("median_m")),
                       key=lambda v: v["median_m"], default=anchors.get((name, k)))
             print(f"{name} {k} {p}: gtkit ...", file=sys.stderr, flush=True)
-            r = gtkit_case(set_dir, k == "knownK", p == "rtk", work / name / f"{k}_{p}", a.set_toml, env)
+            r = gtkit_case(set_dir, k == "knownK", p == "rtk", work / name / f"{k}_{p}", a.set_toml, env, a.every)
             r.update(set=name, K=k, positions=p, verdict=verdict(r, anc, k == "knownK"))
             rows.append(r)
             print(f"  exit {r['exit']} in {r['seconds']:.0f} s, {int(r.get('n_photos') or 0)}/{r['held_out']} "
