@@ -26,7 +26,8 @@ from .grid import Grid
 
 log = logging.getLogger(__name__)
 
-DIRECT_MAX = 250_000      # unknowns solved directly (sparse LU); larger gaps go through a coarser grid first
+DIRECT_MAX = 60_000       # unknowns solved directly (sparse LU); larger gaps go through a coarser grid first
+SMALL_GAP = 64            # cells: gaps up to this size are filled together, without the border's plane
 
 
 @dataclass
@@ -121,8 +122,19 @@ def laplace_fill(height: np.ndarray, unknown: np.ndarray) -> np.ndarray:
     unknown = unknown & ~np.isfinite(h)
     known = np.isfinite(h)
     lab, n = label(unknown)                  # 4-connected regions
+    if n == 0:
+        return h
+    size = np.bincount(lab.ravel(), minlength=n + 1)
+    small = size <= SMALL_GAP
+    small[0] = False
+    if small.any():                          # small holes: all at once, plain harmonic (no trend to speak of)
+        touch = np.zeros(n + 1, bool)
+        touch[np.unique(lab[unknown & _grow4(known)])] = True
+        todo = (small & touch)[lab]
+        if todo.any():
+            h[todo] = _solve_direct(h, todo, known)[todo]
     for c, sl in enumerate(find_objects(lab), start=1):
-        if sl is None:
+        if sl is None or small[c]:
             continue
         r0, r1 = max(sl[0].start - 1, 0), min(sl[0].stop + 1, h.shape[0])
         c0, c1 = max(sl[1].start - 1, 0), min(sl[1].stop + 1, h.shape[1])
@@ -213,16 +225,20 @@ def _solve(h: np.ndarray, unknown: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 def _relax(h: np.ndarray, unknown: np.ndarray, usable: np.ndarray, iterations: int) -> np.ndarray:
     """Jacobi sweeps of the 4-neighbour mean on ``unknown`` (neighbours outside ``usable`` left out)."""
-    h = h.copy()
-    w = [_shift(usable, dr, dc) for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1))]
-    den = sum(x.astype(np.float64) for x in w)
+    H, W = h.shape
+    P = np.zeros((H + 2, W + 2))
+    P[1:-1, 1:-1] = np.where(usable, h, 0.0)
+    U = np.zeros((H + 2, W + 2))
+    U[1:-1, 1:-1] = usable
+    den = U[:-2, 1:-1] + U[2:, 1:-1] + U[1:-1, :-2] + U[1:-1, 2:]
     upd = unknown & (den > 0)
+    inner = P[1:-1, 1:-1]
     for _ in range(iterations):
-        hz = np.where(usable, h, 0.0)
-        s = sum(np.where(wi, _shift(hz, dr, dc, 0.0), 0.0)
-                for wi, (dr, dc) in zip(w, ((1, 0), (-1, 0), (0, 1), (0, -1))))
-        h[upd] = s[upd] / den[upd]
-    return h
+        s = P[:-2, 1:-1] + P[2:, 1:-1] + P[1:-1, :-2] + P[1:-1, 2:]
+        inner[upd] = s[upd] / den[upd]
+    out = h.copy()
+    out[upd] = inner[upd]
+    return out
 
 
 def _solve_direct(h: np.ndarray, unknown: np.ndarray, known: np.ndarray) -> np.ndarray:

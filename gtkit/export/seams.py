@@ -12,9 +12,12 @@ regions meet there is a **seam**. Two things hide it:
   linearly from 1 inside the region to 0 at that distance, so the colours ramp across the seam.
 
 :func:`seam_difference` measures what is left: the median absolute colour difference (0-255, mean
-of the three channels) between 4-neighbouring cells that come from different photos. Its floor is
-the same difference between neighbouring cells of one photo (``seam_difference_within``): texture,
-not seams.
+of the three channels) between 4-neighbouring cells that come from different photos, in the mosaic
+as sourced (``seam_difference_before``) and as blended (``_after``). Its floor is the same difference
+between neighbouring cells of one photo (``seam_difference_within``): texture, not seams. Feathering
+alone lowers it (it spreads the jump over the band), so the summary also gives
+``seam_photo_difference_before`` / ``_after``: how much the two photos' colours of the same cells at
+their seam differ, before and after the gains (what exposure compensation fixes).
 
 Occlusion is not tested (a cell may show a roof that hides it in its source photo); the most
 top-down photo keeps that rare on aerial blocks.
@@ -82,10 +85,10 @@ def seam_difference(rgb: np.ndarray, label: np.ndarray) -> tuple[float | None, f
 
 
 def _gains(pairs: dict, n: int, sigma_pair: float = 0.02, sigma_gain: float = 0.2) -> np.ndarray:
-    """Per-photo, per-channel gains from the mean colours photos give on shared cells:
-    ``pairs[(i, j)] = (count, mean colour of i, mean colour of j)``. In logarithms, so that no common
-    scale can shrink them all (a plain least-squares gain fit drifts towards 0 on large overlaps):
-    minimises sum w_ij (l_i - l_j - log(I_ji / I_ij))^2 / sigma_pair^2 + sum l_i^2 / sigma_gain^2,
+    """Per-photo, per-channel gains from how photos' colours of the same cells compare:
+    ``pairs[(i, j)] = (count, median log(colour of j / colour of i) per channel)``. In logarithms, so
+    that no common scale can shrink them all (a plain least-squares gain fit drifts towards 0 on large
+    overlaps): minimises sum w_ij (l_i - l_j - t_ij)^2 / sigma_pair^2 + sum l_i^2 / sigma_gain^2,
     ``w_ij`` the pair's share of the largest overlap, ``g = exp(l)`` kept within [0.5, 2]."""
     g = np.ones((n, 3))
     if not pairs:
@@ -94,11 +97,9 @@ def _gains(pairs: dict, n: int, sigma_pair: float = 0.02, sigma_gain: float = 0.
     for ch in range(3):
         A = np.eye(n) / sigma_gain ** 2
         b = np.zeros(n)
-        for (i, j), (cnt, mi, mj) in pairs.items():
-            if mi[ch] <= 1.0 or mj[ch] <= 1.0:      # black: no exposure to compare
-                continue
+        for (i, j), (cnt, ratio) in pairs.items():
             w = (cnt / top) / sigma_pair ** 2
-            t = np.log(mj[ch] / mi[ch])             # g_i I_ij = g_j I_ji  <=>  l_i - l_j = log(I_ji / I_ij)
+            t = float(ratio[ch])                    # g_i I_i = g_j I_j  <=>  l_i - l_j = log(I_j / I_i)
             A[i, i] += w
             A[j, j] += w
             A[i, j] -= w
@@ -163,7 +164,7 @@ def mosaic(grid: Grid, heights: np.ndarray, cameras: Cameras, images: Path, *, f
         src[pos[mine]] = c[mine]
     # pairs of photos on the cells next to their seams: photo k just outside its region, on j's cells
     n = len(names)
-    sums: dict[tuple[int, int], list] = {}
+    shared: dict[tuple[int, int], list] = {}         # (i, j), i < j -> [(colour of i, colour of j) on shared cells]
     seam_obs = []                                      # (k, j, colour of k, colour of j) at seam cells
     for k, (pos, c, dk) in cols.items():
         other = lab[pos]
@@ -172,17 +173,18 @@ def mosaic(grid: Grid, heights: np.ndarray, cameras: Cameras, images: Path, *, f
         seam_obs.append((np.full(near.sum(), k), other[near], c[near], src[pos[near]]))
         for j in np.unique(other[sel]):
             m = sel & (other == j)
-            key = (min(k, j), max(k, j))
-            ck, cj = c[m].mean(0), src[pos[m]].mean(0)
-            mi, mj = (ck, cj) if k < j else (cj, ck)
-            v = sums.setdefault(key, [0, np.zeros(3), np.zeros(3)])
-            cnt = int(m.sum())
-            v[0] += cnt
-            v[1] += mi * cnt
-            v[2] += mj * cnt
+            ck, cj = c[m], src[pos[m]]
+            shared.setdefault((min(k, j), max(k, j)), []).append((ck, cj) if k < j else (cj, ck))
     gains = np.ones((n, 3))
-    if compensate and sums:
-        gains = _gains({key: (v[0], v[1] / v[0], v[2] / v[0]) for key, v in sums.items() if v[0] > 0}, n)
+    if compensate and shared:
+        pairs = {}
+        for key, obs in shared.items():
+            ci = np.concatenate([o[0] for o in obs])
+            cj = np.concatenate([o[1] for o in obs])
+            lit = (ci.min(1) > 8) & (cj.min(1) > 8) & (ci.max(1) < 250) & (cj.max(1) < 250)   # not black, not clipped
+            if lit.sum() >= 20:   # the median log ratio: robust to cells one photo sees occluded or misplaced
+                pairs[key] = (int(lit.sum()), np.median(np.log(cj[lit] / ci[lit]), axis=0))
+        gains = _gains(pairs, n)
     num = np.zeros((len(cell), 3), np.float64)
     den = np.zeros(len(cell), np.float64)
     for k, (pos, c, dk) in cols.items():
