@@ -163,22 +163,23 @@ def _grow4(m: np.ndarray) -> np.ndarray:
 
 def _border_plane(h: np.ndarray, ring: np.ndarray, max_slope: float = 1.0,
                   object_m: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
-    """A plane (per cell of ``h``'s box) fitted robustly to ``h`` on the ``ring`` cells (a constant,
-    the ring's lower half's median, where the ring is too thin to fix a slope or the plane is steeper
-    than ``max_slope`` per cell), and the ring cells that stand on the ground rather than being it:
-    more than ``object_m`` (or three median deviations) above that plane: tree crowns and roofs at the
-    gap's border, whose height the ground under the gap should not take."""
+    """A plane (per cell of ``h``'s box) fitted robustly to ``h`` on the ``ring`` cells (the border's
+    majority: a few trees on a field's border do not lift it, a forest's canopy is the canopy; a
+    constant, the ring's median, where the ring is too thin to fix a slope or the plane is steeper
+    than ``max_slope`` per cell), and the ring cells that stand on that surface rather than being it:
+    more than ``object_m`` (or three median deviations) above the plane: tree crowns and roofs at a
+    field's border, whose height the ground under the gap should not take."""
     rr, cc = np.nonzero(ring)
     z = h[rr, cc]
     R, C = np.mgrid[0:h.shape[0], 0:h.shape[1]]
     A = np.c_[np.ones(len(z)), rr - rr.mean(), cc - cc.mean()]
-    coef = np.array([float(np.median(z[z <= np.median(z)])), 0.0, 0.0])
+    coef = np.array([float(np.median(z)), 0.0, 0.0])
     keep = np.ones(len(z), bool)
     if len(z) >= 6 and np.sqrt(max(np.linalg.eigvalsh(np.cov(A[:, 1:].T)).min(), 0.0)) >= 3.0:
         for _ in range(4):
             c = np.linalg.lstsq(A[keep], z[keep], rcond=None)[0]
             r = z - A @ c
-            keep = r <= max(3.0 * float(np.median(np.abs(r[keep]))), 0.05)   # objects stand above the ground
+            keep = np.abs(r) <= max(3.0 * float(np.median(np.abs(r[keep]))), 0.05)   # the border's majority
             if keep.sum() < 6:
                 break
         else:
