@@ -68,6 +68,31 @@ def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
             + (im[y0 + 1, x0] * (1 - fx) + im[y0 + 1, x0 + 1] * fx) * fy)
 
 
+def _ground_box(pose, cam, zlim: tuple[float, float], grid: Grid) -> tuple[int, int, int, int] | None:
+    """Rows and columns (r0, r1, c0, c1) of ``grid`` that the photo can see between heights ``zlim``:
+    its border's rays met with both planes (a ray at or above the horizon: the whole grid)."""
+    t = np.linspace(0.0, 1.0, 9)
+    w, h = cam.width, cam.height
+    uv = np.concatenate([np.c_[t * w, np.zeros(9)], np.c_[t * w, np.full(9, h)],
+                         np.c_[np.zeros(9), t * h], np.c_[np.full(9, w), t * h]])
+    d = cam.rays(uv) @ pose.R                     # world directions of the border's pixels
+    if (d[:, 2] > -1e-3).any():
+        return 0, grid.height, 0, grid.width
+    C = pose.center
+    pts = np.concatenate([C + d * ((z - C[2]) / d[:, 2])[:, None] for z in zlim])
+    if not (C[2] > zlim[1]):
+        return 0, grid.height, 0, grid.width
+    x0, x1 = pts[:, 0].min(), pts[:, 0].max()
+    y0, y1 = pts[:, 1].min(), pts[:, 1].max()
+    mx, my = 0.05 * (x1 - x0), 0.05 * (y1 - y0)      # the border between its samples may bulge (distortion)
+    x0, x1, y0, y1 = x0 - mx, x1 + mx, y0 - my, y1 + my
+    c0 = int(np.clip(np.floor((x0 - grid.xmin) / grid.res) - 1, 0, grid.width))
+    c1 = int(np.clip(np.ceil((x1 - grid.xmin) / grid.res) + 1, 0, grid.width))
+    r0 = int(np.clip(np.floor((grid.ymax - y1) / grid.res) - 1, 0, grid.height))
+    r1 = int(np.clip(np.ceil((grid.ymax - y0) / grid.res) + 1, 0, grid.height))
+    return None if r1 <= r0 or c1 <= c0 else (r0, r1, c0, c1)
+
+
 def seam_difference(rgb: np.ndarray, label: np.ndarray) -> tuple[float | None, float | None, int]:
     """(median |colour jump| across seams, the same between neighbours of one photo, number of seam
     pairs). Colours 0-255, the mean of the channels' absolute differences; cells with label -1 left out."""
@@ -125,11 +150,21 @@ def mosaic(grid: Grid, heights: np.ndarray, cameras: Cameras, images: Path, *, f
     best = np.full(len(cell), -np.inf, np.float32)
     lab = np.full(len(cell), -1, np.int32)
     seen = {}
+    pos_of = np.full(H * W, -1, np.int64)
+    pos_of[cell] = np.arange(len(cell))
+    pos_of = pos_of.reshape(H, W)
+    zlim = (float(np.nanmin(heights)), float(np.nanmax(heights))) if len(cell) else (0.0, 0.0)
     for k, name in enumerate(names):
         pose, cam = cameras.poses[name], cameras.cams[name]
-        uv, front = cam.project(pose.transform(P))
+        box = _ground_box(pose, cam, zlim, grid)
+        if box is None:
+            continue
+        cand = pos_of[box[0]:box[1], box[2]:box[3]].ravel()
+        cand = cand[cand >= 0]
+        uv, front = cam.project(pose.transform(P[cand]))
         vis = front & cam.in_image(uv, margin=1.0)
-        idx = np.flatnonzero(vis)
+        idx = cand[vis]
+        uv = uv[vis]
         if not len(idx):
             continue
         v = pose.center - P[idx]
@@ -137,7 +172,7 @@ def mosaic(grid: Grid, heights: np.ndarray, cameras: Cameras, images: Path, *, f
         better = score > best[idx]
         best[idx[better]] = score[better]
         lab[idx[better]] = k
-        seen[k] = (idx, uv[idx].astype(np.float32))
+        seen[k] = (idx, uv.astype(np.float32))
     label = np.full(H * W, -1, np.int32)
     label[cell] = lab
     label = label.reshape(H, W)
