@@ -340,6 +340,8 @@ def _export_coords(project, s, ctx):
 
 
 STAGES: tuple[Stage, ...] = (
+    # two steps with a fingerprint each (gtkit.sfm.georeg_step): the mapping (photos, cameras.txt, [sfm]) kept
+    # in work/sfm_reference/mapped/, then the georegistration, which a GCP click or a geo.txt edit re-runs alone
     Stage("sfm_reference", "SfM of the reference block, georegistered", "gtkit sfm DIR --block reference",
           (("sfm", "gtkit.sfm.blocks:SfmSettings"),),
           ("images/reference/", "gcp_list.txt", "geo.txt", "cameras.txt"),

@@ -8,7 +8,11 @@ Right: the photo zoomed at the prediction (dashed ring; the view spans a few sig
 places the GCP there (sub-pixel, full-resolution pixels), then the next photo opens; after the
 chosen number of photos the next GCP. After each click the GCP is triangulated, the block refitted
 (a shift or a Sim(3) to the clicked GCPs, or, with no GPS, a Sim(3) once 3 GCPs are clicked in 2+
-photos) and every prediction updated (:func:`gtkit.gcp.marking.solve`).
+photos) and every prediction updated (:func:`gtkit.gcp.marking.solve`). The table's residual and
+X / Y / Z error columns and the fit line come from the georegistration step's own refit of the mapped
+block to ``gcp_list.txt`` as saved (:meth:`gui.gcp_store.GcpStore.georegistration`, the function
+``gtkit sfm`` runs: it records the same figures); the quick refit's figures where the project has no
+mapped block yet.
 
 Where the prediction is sure to 3 sigma <= 12 px and a checkered target's centre is found within
 that (:mod:`gtkit.gcp.snap`), it is shown as "A": the A key places the GCP there. Keys (through the main window): N / P next / previous
@@ -88,6 +92,31 @@ def state_text(s) -> tuple[str, str]:
     return res, err
 
 
+def georegistration_text(g: dict) -> tuple[str, str]:
+    """(residual, error) columns of a GCP from the georegistration record's ``gcp_residuals`` entry:
+    the RMS of its clicks' residuals (px) and its X / Y / Z error (m), or why it has none."""
+    if g.get("status") != "ok":
+        return "", g.get("reason", "")
+    r = np.asarray(g.get("click_residuals_px") or [], float)
+    r = r[np.isfinite(r)]
+    res = f"{float(np.sqrt(np.mean(r ** 2))):.2f}" if len(r) else ""
+    return res, f"{g['dx_m']:+.3f} {g['dy_m']:+.3f} {g['dz_m']:+.3f}"
+
+
+def georegistration_line(geo: dict | None, why: str = "") -> str:
+    """The fit line of the georegistration record (what ``gtkit sfm`` will record)."""
+    if geo is None:
+        return f"<b>georegistration</b>: {why or 'not yet (no mapped reference block)'}"
+    if "error" in geo:
+        return f"<b>georegistration</b>: {geo['error']}"
+    t = (f"<b>georegistration</b> (as gtkit sfm records it): fitted to {geo.get('fitted_to') or geo.get('used')}, "
+         f"RMSE {geo.get('rmse_inliers_m', float('nan')):.3f} m")
+    for key, what in (("gcp_rmse_m", "GCPs"), ("checkpoint_rmse_m", "check points")):
+        if geo.get(key) is not None:
+            t += f"; {what} RMSE {geo[key]:.3f} m"
+    return t
+
+
 class GcpPage(QWidget):
     status = Signal(str)
     session_changed = Signal()
@@ -158,6 +187,13 @@ class GcpPage(QWidget):
         self.refresh()
 
     # --- what to show ------------------------------------------------------------------------
+    def georegistration(self) -> dict | None:
+        """The georegistration step's record for the saved clicks (None without a mapped block)."""
+        try:
+            return self.store.georegistration()
+        except GtkitError as e:     # an unreadable gcp_list.txt or photo: said on the page, not raised
+            return {"error": str(e)}
+
     def solution(self):
         return self.store.solution()
 
@@ -340,12 +376,17 @@ class GcpPage(QWidget):
     # --- display -------------------------------------------------------------------------------
     def refresh(self):
         sol = self.solution()
+        geo = self.georegistration()
+        step = (geo or {}).get("gcp_residuals") or {}
         self.table.blockSignals(True)
         self.table.clear()
         for p in self.store.points:
             s = sol.states.get(p.name) if sol else None
             n = len(self.store.clicks.get(p.name, {}))
-            res, err = state_text(s) if s else ("", "")
+            if p.name in step:       # the georegistration's own figures, as gtkit sfm records them
+                res, err = georegistration_text(step[p.name])
+            else:
+                res, err = state_text(s) if s else ("", "")
             it = QTreeWidgetItem([p.name, "check" if p.check else "GCP", str(n), res, err])
             it.setData(0, ROLE, p.name)
             self.table.addTopLevelItem(it)
@@ -355,11 +396,13 @@ class GcpPage(QWidget):
         if sol is None:
             self.fit_label.setText(self.store.block_error or "no GCPs: import their coordinates")
         else:
-            parts = [f"<b>fit</b>: {sol.fit}"]
-            for kind, check in (("GCPs", False), ("check points", True)):
-                r = sol.rmse_xyz_m(check)
-                if r is not None:
-                    parts.append(f"{kind} RMSE X {r[0]:.3f} Y {r[1]:.3f} Z {r[2]:.3f} m ({sol.rmse_m(check):.3f} m 3D)")
+            parts = [f"<b>predictions</b>: {sol.fit}"]
+            if geo is None or "error" in geo:
+                for kind, check in (("GCPs", False), ("check points", True)):
+                    r = sol.rmse_xyz_m(check)
+                    if r is not None:
+                        parts.append(f"{kind} RMSE X {r[0]:.3f} Y {r[1]:.3f} Z {r[2]:.3f} m ({sol.rmse_m(check):.3f} m 3D)")
+            parts.append(georegistration_line(geo, self.store.georegistration_why))
             self.fit_label.setText("<br>".join(parts))
         self._fill_photos(sol)
         self._markers(sol)
@@ -416,7 +459,11 @@ class GcpPage(QWidget):
         t = f"<b>{s.name}</b> ({kind}): clicked in {s.n_clicks} photos"
         if s.residual_px is not None:
             t += f", {s.clicks_used} used; image residual {s.residual_px:.2f} px RMS"
-        if s.error_m is not None:
+        g = ((self.georegistration() or {}).get("gcp_residuals") or {}).get(s.name)
+        if g is not None and g.get("status") == "ok":
+            t += (f"<br>error X {g['dx_m']:+.3f} Y {g['dy_m']:+.3f} Z {g['dz_m']:+.3f} m ({g['err_m']:.3f} m)"
+                  + (", an outlier of the fit" if g.get("outlier") else "") + ", as gtkit sfm records it")
+        elif s.error_m is not None:
             e = s.error_m
             t += f"<br>error X {e[0]:+.3f} Y {e[1]:+.3f} Z {e[2]:+.3f} m ({s.error_3d_m:.3f} m)"
         elif s.reason:

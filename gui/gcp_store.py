@@ -5,7 +5,9 @@ No Qt here. The coordinates come from ``gcp/points.txt`` (``gtkit gcp import``) 
 atomically (:func:`gtkit.gcp.site.save_clicks`) before it returns, so a crash or kill loses nothing a
 method has returned from, and ``gtkit sfm`` / ``gtkit run`` read the clicks without options. After
 each edit :meth:`GcpStore.solution` re-triangulates the clicked GCPs, refits and re-predicts
-(:func:`gtkit.gcp.marking.solve`, milliseconds).
+(:func:`gtkit.gcp.marking.solve`, milliseconds): the predictions. :meth:`GcpStore.georegistration`
+refits the block to ``gcp_list.txt`` as saved with the georegistration step's own function
+(:func:`gtkit.gcp.site.georegistration_refit`: ``gtkit sfm`` records the same residuals after the click).
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from pathlib import Path
 
 from gtkit.errors import GtkitError
 from gtkit.gcp.marking import Block, Solution, load_block, solve
-from gtkit.gcp.site import import_points, load_marking, save_clicks, settings_for
+from gtkit.gcp.site import georegistration_refit, import_points, load_marking, save_clicks, settings_for
 
 from .write_guard import save_under_lock
 
@@ -28,6 +30,8 @@ class GcpStore:
         self.n_writes = 0
         self.block: Block | None = None
         self.block_error: str | None = None
+        self._refit = None          # gtkit.sfm.georeg_step.Refit, built at the first georegistration()
+        self._geo: dict | None = None
         try:
             self.block = load_block(project.paths)
         except GtkitError as e:
@@ -38,6 +42,7 @@ class GcpStore:
         self.points, self.clicks = load_marking(self.project)
         self._mtime = self._stat()
         self._solution = None
+        self._geo = None
 
     def _stat(self):
         return self.path.stat().st_mtime_ns if self.path.is_file() else None
@@ -61,12 +66,27 @@ class GcpStore:
                                    self.settings.max_px)
         return self._solution
 
+    def georegistration(self) -> dict | None:
+        """The georegistration step's record for the clicks as saved in ``gcp_list.txt`` (its
+        ``gcp_residuals``, ``fitted_to``, RMSE: what ``gtkit sfm`` records for them); None where the
+        project has no mapped reference block yet (:attr:`georegistration_why` says so)."""
+        if self._geo is None:
+            if self._refit is None:
+                self._refit = georegistration_refit(self.project)
+            self._geo = self._refit.run() if self._refit.available else None
+        return self._geo
+
+    @property
+    def georegistration_why(self) -> str:
+        return self._refit.why if self._refit is not None else ""
+
     # --- edits (each one saved before returning) ---------------------------------------------
     def save(self):
         if not save_under_lock(self.guard, lambda: save_clicks(self.project, self.points, self.clicks)):
             return   # another writer took the project meanwhile: kept in memory, written at the next save
         self._mtime = self._stat()
         self._solution = None
+        self._geo = None
         self.n_writes += 1
         if self.on_saved:
             self.on_saved(self)

@@ -15,7 +15,9 @@ def register(sub):
                                    "uncertainty,\n          to work/gcp/predicted.csv (gcp, photo, x, y, sigma_px, source, where); one "
                                    "predicted just\n          outside a photo whose 2-sigma ellipse reaches into it is "
                                    "listed 'near the edge'\n"
-                                   "  status  each GCP and check point: clicks, image residual, X/Y/Z error\n"
+                                   "  status  each GCP and check point: clicks, image residual, X/Y/Z error; then the\n"
+                                   "          georegistration's residuals as `gtkit sfm` records them (its own refit on the\n"
+                                   "          mapped block, seconds)\n"
                                    "Click them in the annotator's GCP page (gtkit annotate SITE); clicks go to "
                                    "gcp_list.txt.")
     s = p.add_subparsers(dest="gcp_command", required=True)
@@ -85,9 +87,14 @@ def run_predict(args):
 
 
 def run_status(args):
-    from ..gcp.site import current_solution
+    from ..gcp.site import current_solution, georegistration_refit, refit_lines
     from ..project import Project
 
-    for line in _table(current_solution(Project.load(args.project))):
+    proj = Project.load(args.project)
+    print("predictions' quick refit (gtkit gcp predict, the annotator's predictions):")
+    for line in _table(current_solution(proj)):
+        print("  " + line)
+    refit = georegistration_refit(proj)
+    for line in refit_lines(refit.run()) if refit.available else [f"georegistration: {refit.why}"]:
         print(line)
     return 0

@@ -144,6 +144,37 @@ def current_solution(project, block: Block | None = None, settings: GcpSettings 
     return solve(block, points, clicks, settings.click_sigma_px, settings.max_px)
 
 
+def georegistration_refit(project, sfm_settings=None):
+    """The georegistration step's own refit over the mapped reference block
+    (:class:`gtkit.sfm.georeg_step.Refit`): what ``gtkit sfm`` will record for the clicks in
+    ``gcp_list.txt``. ``sfm_settings``: the ``[sfm]`` settings (None: as the project resolves them)."""
+    from ..sfm.blocks import photo_metas
+    from ..sfm.georeg_step import Refit
+    from ..stages import settings_for as stage_settings
+
+    s = sfm_settings if sfm_settings is not None else stage_settings("sfm_reference", project)
+    names = reference_photos(project)
+    return Refit(project, s, names, lambda: photo_metas(project, names))
+
+
+def refit_lines(geo: dict | None) -> list[str]:
+    """The georegistration record's GCP lines, as ``gtkit gcp status`` prints them."""
+    if geo is None:
+        return []
+    if "error" in geo:
+        return [f"georegistration: {geo['error']}"]
+    out = [f"georegistration (as gtkit sfm records it): fitted to {geo.get('fitted_to') or geo.get('used')}, "
+           f"RMSE {geo.get('rmse_inliers_m', float('nan')):.3f} m"]
+    for name, g in (geo.get("gcp_residuals") or {}).items():
+        kind = "check point" if g.get("check") else ("GCP (outlier)" if g.get("outlier") else "GCP")
+        out.append(f"  {kind} {name}: " + (f"{g['err_m']:.3f} m (dx {g['dx_m']:+.3f} dy {g['dy_m']:+.3f} dz {g['dz_m']:+.3f})"
+                                          if g["status"] == "ok" else g["reason"]))
+    for key, what in (("gcp_rmse_m", "GCP RMSE"), ("checkpoint_rmse_m", "check point RMSE")):
+        if geo.get(key) is not None:
+            out.append(f"  {what} {geo[key]:.3f} m")
+    return out
+
+
 def predict(project, settings: GcpSettings | None = None) -> tuple[Solution, Path]:
     """``gtkit gcp predict``: every GCP's predicted position in every photo that sees it, to
     ``work/gcp/predicted.csv`` (gcp, photo, x, y, sigma_px, source, where: in the photo or near the edge)."""

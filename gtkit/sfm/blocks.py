@@ -3,11 +3,17 @@ and/or GCPs) and one block per query sequence (wide photos; sequential + spatial
 
 Outputs (``work/sfm_reference/``, ``work/sfm_queries/<seq>/``): ``database.db``, ``model/``
 (pycolmap reconstruction), ``poses.txt`` + ``intrinsics.txt`` (gtkit.io.poses formats, project
-world frame), ``block.json`` (georegistration, GCP residuals, unregistered images and why).
+world frame), ``block.json`` (georegistration, GCP residuals, unregistered images and why); the
+reference block also keeps its unplaced mapped models in ``mapped/`` (gtkit.sfm.georeg_step).
+
+A block is two steps: :func:`map_block` (features, pairs, mapper, the final intrinsics BA) and
+:func:`place_block` (georegistration, merged models, the hold by positions, the block's files).
+The reference block runs them with a fingerprint each (:func:`run_reference`): a GCP click or a
+geo.txt edit re-runs only the second (issue 57).
 
 Size: one module for both kinds of block and their settings (``SfmSettings``, read by every stage
-that lists photos); its steps live beside it (database, pairs, seeded, georegister, prior_ba), and
-``build_block`` (over 150 lines, to be split into features / pairs / mapper / georegistration) ties them.
+that lists photos); its steps live beside it (database, pairs, seeded, georegister, georeg_step,
+prior_ba), and ``map_block`` / ``place_block`` tie them.
 """
 from __future__ import annotations
 
@@ -23,7 +29,6 @@ from ..determinism import ba_threads, single_thread_mapper
 from ..errors import GtkitError
 from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
-from ..io.odm import read_gcp_list
 from ..io.poses import INTRINSICS, POSES, write_intrinsics, write_poses
 from ..photo_positions import positions_and_accuracy
 from ..project import (IMAGE_EXT, Project, cpu_seconds, file_fingerprint, mark_stage_done, settings_dict, settings_key,
@@ -34,8 +39,10 @@ from ..queries import QUERY_PATTERN
 from .block_cameras import REFERENCE_STAGE, camera_groups, reference_calibrations
 from .database import (CameraGroup, FeatureSettings, MatchSettings, build_database, failure_reason,
                        image_diagnostics, match_pairs, read_descriptors)
-from .geometry import RegistrationError, model_cameras, model_poses
-from .georegister import GeoregisterSettings, check_gcp_clicks, georegister
+from .geometry import model_cameras, model_poses
+from .georegister import GeoregisterSettings
+from .georeg_step import (MappedBlock, block_gcps, georegister_models, load_mapped, mapping_inputs, mapping_key,
+                          positions_moved, reusable, save_mapped)
 from .prior_ba import hold_by_positions
 from .pairs import block_pairs
 from .reference_report import write_reference_report
@@ -485,40 +492,6 @@ def _duplicate_models(models_info: list[dict]) -> dict[int, int]:
     return duplicate
 
 
-def _georegister_models(project: Project, names: list[str], kind: str, settings: SfmSettings, models: list,
-                        models_info: list[dict], duplicate: dict, positions: dict, accuracy: dict, metas: dict,
-                        summary: dict) -> list[int]:
-    """Each model not a duplicate georegistered by the GPS and GCPs (the first that places goes into
-    ``summary``); returns the models kept (all that were placed, else the first)."""
-    P = project.paths
-    kept = [0]
-    gcps = read_gcp_list(P.gcp_list, project.frame) if P.gcp_list.is_file() else []
-    for g in gcps:  # ODM names photos by file name; gtkit by path under images/
-        for c in g.clicks:
-            if "/" not in c.image:
-                c.image = next((n for n in names if Path(n).name == c.image), c.image)
-    if gcps and kind == "reference":
-        summary["gcp_clicks_outside_block"] = check_gcp_clicks(gcps, names)
-    geo_models = []
-    for k, r in enumerate(models):
-        if k in duplicate:
-            continue
-        try:
-            g = georegister(r, positions, gcps, settings.georegister, accuracy, metas)
-            models_info[k]["georegistration"] = {kk: g[kk] for kk in ("n_inliers", "rmse_inliers_m", "gcp_median_err_m")}
-            geo_models.append((k, g))
-        except RegistrationError as e:
-            models_info[k]["georegistration"] = {"error": str(e)}
-    if geo_models:
-        kept = [k for k, _ in geo_models]
-        summary["georegistration"] = geo_models[0][1]
-        summary["frame"] = "project world frame"
-    else:
-        summary["georegistration"] = {"error": models_info[0]["georegistration"]["error"]}
-        summary["frame"] = "arbitrary SfM frame (georegistration failed)"
-    return kept
-
-
 def _hold_by_positions(rec, kind: str, settings: SfmSettings, summary: dict, positions: dict, accuracy: dict,
                        mapper_record: dict):
     """The reference block held by its positions in a pose-prior BA where they can hold its shape (see
@@ -549,11 +522,10 @@ def _hold_by_positions(rec, kind: str, settings: SfmSettings, summary: dict, pos
     return rec
 
 
-def _unregistered_reasons(db: Path, names: list[str], registered: set, models_info: list[dict], summary: dict,
+def _unregistered_reasons(diag: dict, names: list[str], registered: set, models_info: list[dict], summary: dict,
                           min_num_inliers: int) -> dict[str, str]:
     """Why each photo not in the block is not: in another model (and why that one was not kept), off its
-    seeded prior, or its matches (keypoints, verified pairs, inliers)."""
-    diag = image_diagnostics(db)
+    seeded prior, or its matches (``diag``: :func:`~gtkit.sfm.database.image_diagnostics`)."""
     in_other = {n: info for info in models_info if not info["kept"] for n in info["photos"]}
     unregistered = {}
     for n in names:
@@ -591,30 +563,38 @@ def _write_block_model(out: Path, rec, kind: str, summary: dict, label: str) -> 
         write_intrinsics(out / INTRINSICS, model_cameras(rec))
 
 
-def build_block(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings,
-                georegister_block: bool, label: str, executor=None) -> BlockResult:
-    """Features, pairs, mapping, optional georegistration; writes the block's files to ``out``.
-    ``kind``: 'reference' or 'sequence' (adds sequential pairs). ``executor``: None extracts and
-    matches in this process; an :class:`~gtkit.localize.executors.ExecutorSettings` runs feature
-    extraction and matching as tasks on that executor (same database)."""
+def _block_priors(project: Project, names: list[str], kind: str, settings: SfmSettings, metas: dict | None = None):
+    """(metas, positions, accuracy, the reference block's seeding verdict or None): what the photos'
+    headers and geo.txt say, read once for the mapping and the georegistration."""
+    from .seeded import seeding_check
+
+    metas = photo_metas(project, names) if metas is None else metas
+    positions, accuracy = gps_positions_and_accuracy(project, names, metas)
+    seedable = seeding_check(names, positions, accuracy, metas) if kind == "reference" else None
+    return metas, positions, accuracy, seedable
+
+
+def map_block(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings, label: str,
+              executor=None, priors: tuple | None = None) -> MappedBlock:
+    """The mapping step: features, pairs, the mapper and the final intrinsics BA; the models unplaced,
+    largest first, with their record (:class:`~gtkit.sfm.georeg_step.MappedBlock`). ``priors``: what
+    :func:`_block_priors` read (None: read now)."""
     P = project.paths
     out.mkdir(parents=True, exist_ok=True)
     t0, c0 = time.time(), cpu_seconds()
-    metas = photo_metas(project, names)   # each photo's header read once: positions, pairing, georegistration
-    positions, accuracy = gps_positions_and_accuracy(project, names, metas)
+    metas, positions, accuracy, _ = priors or _block_priors(project, names, kind, settings)
     look = pairing_positions(project, names, positions, metas=metas) if settings.pair_by_footprint else positions
     from_ref, from_ref_why = reference_calibrations(project, names) if kind == "sequence" else ({}, {})
     groups = camera_groups(project, names, positions, from_ref)
     db = out / "database.db"
-    m = settings.matching
     reuse, pairs_used, n_pairs, (t_feat, c_feat) = _feature_database(
         project, names, out, kind, settings, label, executor, groups, look, accuracy, t0)
     t_match, c_match = _step(label, f"matching ({n_pairs} pairs)", t_feat), cpu_seconds()
     all_ids, calibrated, no_prior = _camera_ids(db, groups)
     policy = intrinsics_policy(settings, calibrated, no_prior, all_ids, len(positions))
-    priors = ({"names": names, "positions": positions, "accuracy": accuracy, "metas": metas}
-              if kind == "reference" else None)
-    models, mapper_record = _map(db, P.images, out / "mapper", settings, policy, len(names), label, priors)
+    map_priors = ({"names": names, "positions": positions, "accuracy": accuracy, "metas": metas}
+                  if kind == "reference" else None)
+    models, mapper_record = _map(db, P.images, out / "mapper", settings, policy, len(names), label, map_priors)
     t_map = _step(label, f"mapping ({sum(r.num_reg_images() for r in models)} photos in {len(models)} models)", t_match)
     c_map = cpu_seconds()
     summary = {"block": label, "reused_database": reuse, "n_images": len(names), "pairings": pairs_used,
@@ -632,14 +612,6 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
     summary["mapper_why"] = mapper_record["why"]
     if "seeded" in mapper_record:
         summary["seeded"] = mapper_record["seeded"]
-    if not models:
-        diag = image_diagnostics(db)
-        summary.update(n_registered=0, n_models=0, models=[], unregistered={
-            n: failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}), m.min_num_inliers)
-            for n in names})
-        summary["error"] = "the mapper reconstructed nothing (no initial pair found)"
-        write_json(out / "block.json", summary)
-        return BlockResult(None, summary)
     focal_check = None
     for k, r in enumerate(models):
         free = set(policy["self_calibrate"])
@@ -657,16 +629,56 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
         summary["intrinsics_policy"]["exif_focal_refined"] = focal_check["observable"]
     models_info = [{"model": k, "n_registered": r.num_reg_images(), "n_points3D": r.num_points3D(),
                     "photos": sorted(im.name for im in r.images.values() if im.has_pose)} for k, r in enumerate(models)]
-    kept, duplicate = [0], _duplicate_models(models_info)
+    record = {"summary": summary, "models_info": models_info, "duplicate": _duplicate_models(models_info),
+              "policy": policy, "focal_check": focal_check, "mapper_record": mapper_record,
+              "diagnostics": image_diagnostics(db),
+              # the positions the mapping was seeded / paired with (a later geo.txt edit is measured against them)
+              "positions": {n: [round(float(v), 4) for v in x] for n, x in positions.items()},
+              "seconds": {"features": t_feat - t0, "matching": t_match - t_feat, "mapping": t_map - t_match},
+              "cpu_seconds": {"features": round(c_feat - c0, 1), "matching": round(c_match - c_feat, 1),
+                              "mapping": round(c_map - c_match, 1)}}
+    return MappedBlock(models, record)
+
+
+def place_block(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings, mapped: MappedBlock,
+                georegister_block: bool, label: str, priors: tuple | None = None) -> BlockResult:
+    """The georegistration step over ``mapped`` (its models are moved in place): the Sim(3) by GPS and
+    GCPs of each model, the kept ones merged, the reference block held by its positions, why each photo
+    is not in it; writes the block's model, poses, intrinsics and ``block.json`` to ``out``.
+    ``priors``: what :func:`_block_priors` read (None: read now, geo.txt as it is now)."""
+    import copy
+
+    t0, c0 = time.time(), cpu_seconds()
+    metas, positions, accuracy, _ = priors or _block_priors(project, names, kind, settings)
+    rec0 = mapped.record
+    models, policy, focal_check = mapped.models, rec0["policy"], rec0["focal_check"]
+    summary = copy.deepcopy(rec0["summary"])
+    models_info = copy.deepcopy(rec0["models_info"])
+    duplicate = {int(k): v for k, v in rec0["duplicate"].items()}
+    min_inliers = settings.matching.min_num_inliers
+    diag = rec0["diagnostics"]
+    if mapped.reused:
+        summary["mapping"] = {"reused": True, "made": rec0.get("made", ""),
+                              "why": "photos, cameras.txt and SfM settings unchanged (gtkit.sfm.georeg_step)",
+                              **positions_moved(rec0.get("positions") or {}, positions)}
+    if not models:
+        summary.update(n_registered=0, n_models=0, models=[], unregistered={
+            n: failure_reason(diag.get(n, {"keypoints": 0, "verified_pairs": 0, "best_inliers": 0}), min_inliers)
+            for n in names})
+        summary["error"] = "the mapper reconstructed nothing (no initial pair found)"
+        write_json(out / "block.json", summary)
+        return BlockResult(None, summary)
+    kept = [0]
     if georegister_block:
-        kept = _georegister_models(project, names, kind, settings, models, models_info, duplicate, positions,
-                                   accuracy, metas, summary)
+        gcps = block_gcps(project, names)
+        kept = georegister_models(gcps, names, kind, settings.georegister, models, models_info, duplicate,
+                                  positions, accuracy, metas, summary)
     else:
         summary["frame"] = "arbitrary SfM frame"
     rec = merge_models([models[k] for k in kept]) if len(kept) > 1 else models[kept[0]]
     if len(kept) > 1:  # each model was georegistered on its own; the figures above are model 0's
         summary["georegistration"]["merged_models"] = kept
-    rec = _hold_by_positions(rec, kind, settings, summary, positions, accuracy, mapper_record)
+    rec = _hold_by_positions(rec, kind, settings, summary, positions, accuracy, rec0["mapper_record"])
     for k, info in enumerate(models_info):
         info["kept"] = k in kept
         if k in duplicate:
@@ -676,7 +688,7 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                               if georegister_block else "not the largest model of an unregistered block")
     t_geo, c_geo = time.time(), cpu_seconds()
     registered = {im.name for im in rec.images.values() if im.has_pose}
-    unregistered = _unregistered_reasons(db, names, registered, models_info, summary, m.min_num_inliers)
+    unregistered = _unregistered_reasons(diag, names, registered, models_info, summary, min_inliers)
     summary.update({"n_registered": len(registered), "unregistered": unregistered, "n_models": len(models),
                     "models": models_info, "n_points3D": rec.num_points3D(),
                     "mean_reproj_px": float(rec.compute_mean_reprojection_error()),
@@ -686,17 +698,32 @@ def build_block(project: Project, names: list[str], out: Path, kind: str, settin
                                               "refined": _refined_parts(cid, policy, focal_check)}
                                    for cid, c in rec.cameras.items()}})
     _write_block_model(out, rec, kind, summary, label)
-    summary["seconds"] = {"features": t_feat - t0, "matching": t_match - t_feat, "mapping": t_map - t_match,
-                          "georegistration": t_geo - t_map}
-    summary["cpu_seconds"] = {"features": round(c_feat - c0, 1), "matching": round(c_match - c_feat, 1),
-                              "mapping": round(c_map - c_match, 1), "georegistration": round(c_geo - c_map, 1)}
+    # a reused mapping cost nothing now: its own seconds stay in mapped/mapped.json
+    done = {k: (0.0 if mapped.reused else v) for k, v in rec0["seconds"].items()}
+    summary["seconds"] = {**done, "georegistration": t_geo - t0}
+    summary["cpu_seconds"] = {**{k: (0.0 if mapped.reused else v) for k, v in rec0["cpu_seconds"].items()},
+                              "georegistration": round(c_geo - c0, 1)}
     write_json(out / "block.json", summary)
     return BlockResult(rec, summary)
 
 
+def build_block(project: Project, names: list[str], out: Path, kind: str, settings: SfmSettings,
+                georegister_block: bool, label: str, executor=None) -> BlockResult:
+    """Features, pairs, mapping, optional georegistration; writes the block's files to ``out``
+    (:func:`map_block` then :func:`place_block`). ``kind``: 'reference' or 'sequence' (adds sequential
+    pairs). ``executor``: None extracts and matches in this process; an
+    :class:`~gtkit.localize.executors.ExecutorSettings` runs feature extraction and matching as tasks
+    on that executor (same database)."""
+    priors = _block_priors(project, names, kind, settings)
+    mapped = map_block(project, names, out, kind, settings, label, executor, priors)
+    return place_block(project, names, out, kind, settings, mapped, georegister_block, label, priors)
+
+
 def run_reference(project: Project | str | Path, settings: SfmSettings, force: bool = False,
                   executor=None) -> dict:
-    """``gtkit sfm DIR --block reference``. ``executor``: see :func:`build_block`."""
+    """``gtkit sfm DIR --block reference``: the mapping step, reused when its own inputs are unchanged
+    (``work/sfm_reference/mapped/``, :mod:`gtkit.sfm.georeg_step`), then the georegistration step.
+    ``force``: both re-run. ``executor``: see :func:`build_block`."""
     quiet_colmap()
     project = project if isinstance(project, Project) else Project.load(project)
     P = project.paths
@@ -710,14 +737,33 @@ def run_reference(project: Project | str | Path, settings: SfmSettings, force: b
         return json.loads((out / "block.json").read_text())
     start_stage_clock(out)
     choose_mapper(settings.mapper, len(names))  # a bad mapper name fails before the features
-    res = build_block(project, names, out, "reference", settings, georegister_block=True, label="reference block",
-                      executor=executor)
+    label = "reference block"
+    priors = _block_priors(project, names, "reference", settings)
+    key = mapping_key(settings, mapping_inputs(project, names, priors[1], priors[3]))
+    mapped = None if force else load_mapped(out, key)
+    if mapped is not None:
+        ok, why = reusable(mapped, priors[1])
+        if not ok:
+            log.info("%s: %s", label, why)
+            mapped = None
+    if mapped is None:
+        mapped = map_block(project, names, out, "reference", settings, label, executor, priors)
+        mapped.record["made"] = time.strftime("%Y-%m-%dT%H:%M:%S")
+        save_mapped(out, mapped, key)
+        # the georegistration works on the models as saved, so that a later run of it alone
+        # (a GCP click, a geo.txt edit) starts from the very same models
+        mapped = load_mapped(out, key) or mapped
+        mapped.reused = False
+    else:
+        log.info("%s: mapping reused (photos, cameras.txt and SfM settings unchanged); georegistration only", label)
+    res = place_block(project, names, out, "reference", settings, mapped, True, label, priors)
     write_reference_report(P, res.summary)
     if res.rec is None:
         raise GtkitError(res.summary["error"], out)
     if "error" in res.summary.get("georegistration", {}):
         raise GtkitError(f"georegistration failed: {res.summary['georegistration']['error']}", out)
-    mark_stage_done(out, settings, inputs, n_registered=res.summary["n_registered"])
+    mark_stage_done(out, settings, inputs, n_registered=res.summary["n_registered"],
+                    mapping_reused=mapped.reused)
     return res.summary
 
 
