@@ -406,6 +406,15 @@ CONTRADICTS = 1.5           # evidence this many times the stated accuracy overr
 TYPICAL_GCP_M = (0.05, 0.10)  # surveyed GCPs (h, v), said only where nothing measures them
 
 
+def weak_inflation(n: int) -> float:
+    """How much larger a scatter measured on ``n`` points of a Sim(3) fit (3n - 7 degrees of freedom)
+    may be at 95 % confidence: sqrt(dof / chi2_0.05(dof)) (4 points: 2.1; 5 points: 1.7)."""
+    from scipy.stats import chi2
+
+    dof = max(3 * n - 7, 1)
+    return float(np.sqrt(dof / chi2.ppf(0.05, dof)))
+
+
 def _axes(d: np.ndarray) -> tuple[float, float]:
     """1-sigma per horizontal axis (RMS of the 2-D error over sqrt 2) and vertical RMS of errors ``d`` (n, 3)."""
     d = np.asarray(d, float).reshape(-1, 3)
@@ -454,7 +463,9 @@ def accuracy_claim(*, kinds: np.ndarray, inliers: np.ndarray, src: np.ndarray, t
       with the transform's jackknife spread at the cameras (GCPs far below the cameras: their lever
       arm), and the check points' error where any are marked (the larger rules). Positions that
       scatter like a GPS's (> SURVEY_GRADE_M) carry a common bias that no residual shows: the
-      source's typical bias is added (``fit + typical GPS bias``). Fewer than 6 points: ``weak``;
+      source's typical bias is added (``fit + typical GPS bias``). Fewer than 6 points and no check
+      point: ``weak``, the leave-one-out scatter taken at its 95 % upper bound (:func:`weak_inflation`:
+      on the tiny sample's 4 GCPs the cameras were off by up to 3 x the plain figure);
     - ``typical``: only 3 points (nothing left to check the fit with) and nothing stated: the
       source's typical accuracy, weak.
     A gravity-held fit (consumer GPS, its tilt from gravity) claims from its horizontal and vertical
@@ -494,8 +505,13 @@ def accuracy_claim(*, kinds: np.ndarray, inliers: np.ndarray, src: np.ndarray, t
             ev["leave_one_out_h_m"], ev["leave_one_out_v_m"] = round(lh, 4), round(lv, 4)
             if jack is not None:
                 ev["transform_at_cameras_h_m"], ev["transform_at_cameras_v_m"] = round(jack[0], 4), round(jack[1], 4)
+            k = weak_inflation(n) if n < MIN_STRONG_POINTS and not checkpoints else 1.0
+            if k > 1.0:   # few points: the 95 % upper bound of the scatter they show
+                lh, lv = lh * k, lv * k
+                ev["weak_inflation"] = round(k, 2)
             emp = (float(np.hypot(lh, jack[0] if jack else 0.0)), float(np.hypot(lv, jack[1] if jack else 0.0)))
-            how = f"the fit's leave-one-out error over {what}" + (" and its spread at the cameras" if jack else "")
+            how = (f"the fit's leave-one-out error over {what}" + (f" (x{k:.1f}: its 95 % upper bound)" if k > 1.0 else "")
+                   + (" and its spread at the cameras" if jack else ""))
     if checkpoints:
         ch, cv = _axes(np.array(checkpoints))
         ev["checkpoints_h_m"], ev["checkpoints_v_m"], ev["n_checkpoints"] = round(ch, 4), round(cv, 4), len(checkpoints)
