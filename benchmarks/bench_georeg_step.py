@@ -113,6 +113,7 @@ def step_case(site: Path, work: Path, label: str) -> dict:
     t = gtkit("sfm", site, "--block", "reference")
     cpu = LAST_CPU[0]
     block = json.loads((site / "work" / "sfm_reference" / "block.json").read_text())
+    print(f"{label}: gtkit sfm {t:.1f} s wall, {cpu:.1f} s CPU (load {load0:.1f}); now the --force run", flush=True)
     full = copy_site(site, work / f"force_{label}")
     t_full = gtkit("sfm", full, "--block", "reference", "--force")
     return {"case": label, "seconds": round(t, 2), "cpu_seconds": round(cpu, 2), "load_avg_1m": round(load0, 2),
@@ -142,6 +143,7 @@ def main(argv=None) -> int:
     if a.geo:
         write_geo_txt(site)
     t0 = gtkit("sfm", site, "--block", "reference")
+    print(f"first run: {t0:.1f} s wall, {LAST_CPU[0]:.1f} s CPU", flush=True)
     out = {"site": str(a.site or BRIGHTON), "first_run_seconds": round(t0, 1), "cases": []}
     if held is not None:
         with open(gl, "a") as f:

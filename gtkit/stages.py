@@ -176,7 +176,10 @@ def _sfm_reference(project, s, ctx):
     from .sfm.blocks import run_reference
 
     r = run_reference(project, s, executor=on_cluster(ctx))
-    return {"n_registered": r.get("n_registered"), "n_images": r.get("n_images")}
+    out = {"n_registered": r.get("n_registered"), "n_images": r.get("n_images")}
+    if (r.get("mapping") or {}).get("reused"):   # a GCP click / geo.txt edit: the georegistration alone
+        out["mapping"] = "reused (georegistration only)"
+    return out
 
 
 def _model(project, s, ctx):
