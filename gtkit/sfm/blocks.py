@@ -30,6 +30,7 @@ from ..errors import GtkitError
 from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
 from ..io.poses import INTRINSICS, POSES, write_intrinsics, write_poses
+from ..gcp.points import points_path
 from ..photo_positions import positions_and_accuracy
 from ..project import (IMAGE_EXT, Project, cpu_seconds, file_fingerprint, mark_stage_done, settings_dict, settings_key,
                        stage_done, start_stage_clock)
@@ -42,7 +43,7 @@ from .database import (CameraGroup, FeatureSettings, MatchSettings, build_databa
 from .geometry import model_cameras, model_poses
 from .georegister import GeoregisterSettings
 from .georeg_step import (MappedBlock, block_gcps, georegister_models, load_mapped, mapping_inputs, mapping_key,
-                          positions_moved, reusable, save_mapped)
+                          positions_moved, reusable, save_mapped, stated_gcp_accuracy)
 from .prior_ba import hold_by_positions
 from .pairs import block_pairs
 from .reference_report import write_reference_report
@@ -163,6 +164,14 @@ def _inputs(project: Project, names: list[str]) -> dict:
     return {"images": {n: file_fingerprint(P.images / n) for n in names},
             "cameras": file_fingerprint(P.cameras), "gcp_list": file_fingerprint(P.gcp_list),
             "geo_txt": file_fingerprint(P.geo_txt), "crs": [project.frame.crs_spec, list(project.frame.origin)]}
+
+
+def _gcp_clicks_in(project: Project, names: list[str]) -> list:
+    """The GCP clicks in ``names`` (a query sequence's photos): all a sequence's block reads of
+    gcp_list.txt, so a click in a reference photo does not re-run the sequences' SfM."""
+    gcps = block_gcps(project, names)
+    return sorted([g.name, c.image, round(c.x, 3), round(c.y, 3), [round(float(v), 4) for v in g.xyz]]
+                  for g in gcps for c in g.clicks if c.image in set(names))
 
 
 def _camera_ids(db: Path, groups: list[CameraGroup]) -> tuple[set[int], set[int], set[int]]:
@@ -672,7 +681,8 @@ def place_block(project: Project, names: list[str], out: Path, kind: str, settin
     if georegister_block:
         gcps = block_gcps(project, names)
         kept = georegister_models(gcps, names, kind, settings.georegister, models, models_info, duplicate,
-                                  positions, accuracy, metas, summary)
+                                  positions, accuracy, metas, summary,
+                                  stated_gcp_accuracy(project) if kind == "reference" else None)
     else:
         summary["frame"] = "arbitrary SfM frame"
     rec = merge_models([models[k] for k in kept]) if len(kept) > 1 else models[kept[0]]
@@ -732,6 +742,8 @@ def run_reference(project: Project | str | Path, settings: SfmSettings, force: b
         raise GtkitError("no reference photos found", P.reference_images)
     out = P.stage(REFERENCE_STAGE)
     inputs = _inputs(project, names)
+    if points_path(P).is_file():   # the GCPs' stated accuracy (gcp/points.txt) enters the claimed accuracy
+        inputs["gcp_points"] = file_fingerprint(points_path(P))
     if not force and stage_done(out, settings, inputs):
         import json
         return json.loads((out / "block.json").read_text())
@@ -788,6 +800,7 @@ def run_queries(project: Project | str | Path, settings: SfmSettings, force: boo
             result[seq] = {"block": seq, "error": f"no photos matching {settings.query_pattern}", "n_images": 0}
             continue
         inputs = _inputs(project, names)
+        inputs["gcp_list"] = _gcp_clicks_in(project, names)
         # a sequence shot with a reference camera starts from its calibration (reference_calibrations)
         inputs["reference_intrinsics"] = file_fingerprint(P.intrinsics(REFERENCE_STAGE))
         if not force and stage_done(out, settings, inputs):

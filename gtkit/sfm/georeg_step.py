@@ -173,11 +173,21 @@ def block_gcps(project, names: list[str], gcps: list[GCP] | None = None) -> list
     return gcps
 
 
+def stated_gcp_accuracy(project) -> dict[str, tuple]:
+    """{GCP: (stated horizontal, vertical) metres} from ``gcp/points.txt``'s accuracy columns (the
+    surveyor's coordinates, ``gtkit gcp import``); {} without the file."""
+    from ..gcp.points import load_points
+
+    return {p.name: (p.acc_h, p.acc_v if p.acc_v is not None else p.acc_h)
+            for p in load_points(project.paths, project.frame) if p.acc_h is not None}
+
+
 def georegister_models(gcps: list[GCP], names: list[str], kind: str, georegister_settings, models: list,
                        models_info: list[dict], duplicate: dict, positions: dict, accuracy: dict, metas: dict,
-                       summary: dict) -> list[int]:
+                       summary: dict, gcp_accuracy: dict | None = None) -> list[int]:
     """Each model not a duplicate georegistered by the GPS and GCPs, in place (the first that places
-    goes into ``summary``); returns the models kept (all that were placed, else the first)."""
+    goes into ``summary``); returns the models kept (all that were placed, else the first).
+    ``gcp_accuracy``: :func:`stated_gcp_accuracy` (only the accuracy claimed reads it)."""
     kept = [0]
     if gcps and kind == "reference":
         summary["gcp_clicks_outside_block"] = check_gcp_clicks(gcps, names)
@@ -186,7 +196,7 @@ def georegister_models(gcps: list[GCP], names: list[str], kind: str, georegister
         if k in duplicate:
             continue
         try:
-            g = georegister(r, positions, gcps, georegister_settings, accuracy, metas)
+            g = georegister(r, positions, gcps, georegister_settings, accuracy, metas, gcp_accuracy=gcp_accuracy)
             models_info[k]["georegistration"] = {kk: g[kk] for kk in ("n_inliers", "rmse_inliers_m", "gcp_median_err_m")}
             geo_models.append((k, g))
         except RegistrationError as e:
@@ -235,5 +245,5 @@ class Refit:
         gcps = block_gcps(self.project, self.names, copy.deepcopy(gcps) if gcps is not None else None)
         georegister_models(gcps, self.names, "reference", self.settings.georegister, models, info,
                            {int(k): v for k, v in rec["duplicate"].items()}, self.positions, self.accuracy,
-                           self.metas, summary)
+                           self.metas, summary, stated_gcp_accuracy(self.project))
         return summary["georegistration"]
