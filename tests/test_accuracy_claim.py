@@ -5,7 +5,6 @@ source's typical accuracy; the claim names its source and covers the block's tru
 "Covers": the block's median horizontal / vertical camera-centre offset from the truth within 3 x
 the 1-sigma claim (gtkit.evaluate.gt_report.claim_covers)."""
 import io
-import shutil
 from contextlib import redirect_stdout
 
 import numpy as np
@@ -16,8 +15,9 @@ from gtkit.evaluate.poses import block_frame_errors
 from gtkit.io.poses import read_poses
 from gtkit.sfm.geometry import model_poses
 from gtkit.sfm.georegister import GeoregisterSettings, accuracy_claim, georegister
-from gtkit.synth.variants import apply_variant, level_block, level_block_gcps
+from gtkit.synth.variants import level_block, level_block_gcps
 from conftest import stage_settings
+from test_georegister_consumer import _consumer_copy as _copy  # the tiny sample copied with variants
 
 
 def _covered(rec, truth, claim) -> dict:
@@ -98,15 +98,6 @@ def test_few_points_are_weak_and_three_fall_back_to_typical():
     g3 = accuracy_claim(kinds=np.array(["gps"] * 3), inliers=np.ones(3, bool), src=X[:3], tgt=tgt[:3],
                         stated=[None] * 3, **common)
     assert g3["source"] == "typical" and (g3["h_m"], g3["v_m"]) == (2.0, 5.0), g3
-
-
-def _copy(tiny_sample, tmp_path, *variants):
-    root, _, _ = tiny_sample
-    dst = tmp_path / "site"
-    shutil.copytree(root, dst, ignore=shutil.ignore_patterns("work", "reports", "exports"))
-    for v in variants:
-        apply_variant(dst, v, seed=1)
-    return dst
 
 
 def test_consumer_gps_block_claims_a_gps_bias_that_covers_the_truth(tiny_sample, tmp_path):
