@@ -14,7 +14,8 @@ from gtkit.evaluate.gt_report import claim_covers
 from gtkit.evaluate.poses import block_frame_errors
 from gtkit.io.poses import read_poses
 from gtkit.sfm.geometry import model_poses
-from gtkit.sfm.georegister import GeoregisterSettings, accuracy_claim, georegister
+from gtkit.sfm.accuracy_claim import accuracy_claim
+from gtkit.sfm.georegister import GeoregisterSettings, georegister
 from gtkit.synth.variants import level_block, level_block_gcps
 from conftest import stage_settings
 from test_georegister_consumer import _consumer_copy as _copy  # the tiny sample copied with variants
