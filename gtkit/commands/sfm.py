@@ -55,6 +55,12 @@ def _print_reference(r: dict) -> None:
     if geo.get("checkpoint_median_err_m") is not None:
         line += f"; check points {geo['checkpoint_median_err_m']:.3f} m"
     print(line)
+    mapping = r.get("mapping") or {}
+    if mapping.get("reused"):
+        moved = mapping.get("largest_move_m") or {}
+        print("  mapping reused (photos, cameras.txt, [sfm] unchanged): georegistration only"
+              + (f"; positions moved since the mapping: {mapping.get('positions_moved_since_mapping')}, largest "
+                 f"{moved['m']:.3f} m ({moved['photo']})" if moved.get("m") else ""))
     claim = geo.get("claimed_accuracy")   # the georegistration's record (gtkit.sfm.georegister.accuracy_claim)
     if q and not geo.get("n_gcp_in_fit"):
         print(f"  GPS: {q.get('n_inliers')}/{q.get('n_positions')} positions kept, residual median "
