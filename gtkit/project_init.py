@@ -2,7 +2,7 @@
 
 Photos are linked (or copied) into the layout gtkit expects (``images/reference/``,
 ``images/queries/<seq>/``); ``gcp_list.txt``, ``geo.txt`` and ``cameras.txt`` are copied in; a
-surveyor's GCP coordinates file (``--gcp-points``, see :mod:`gtkit.gcp.points`) is checked and stored
+surveyor's GCP coordinates file (``--gcp-points``, see :mod:`gtkit.io.gcp_points`) is checked and stored
 as ``gcp/points.txt`` (clicked later in the annotator's GCP page).
 The CRS is the one given, else the CRS line of the GCP / GCP coordinates / geo file, else the UTM
 zone of the photos' GPS; the local origin is the data's centroid (rounded to 1 m, height 0). Returns what was found
@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import GtkitError
 from .input_check import BadInputs, bad_photos_error, photo_problem
-from .gcp.points import check_inside, points_path, read_points, write_points
+from .io.gcp_points import check_inside, points_path, read_points, write_points
 from .geo import GeoFrame, parse_crs, utm_epsg
 from .io.exif import read_photo_meta
 from .io.odm import read_crs, read_gcp_list, read_geo_txt
@@ -111,7 +111,7 @@ def _scan(photos: list[Path], known: dict) -> tuple[dict, list]:
 
 def _points_crs(path) -> str | None:
     """The CRS a GCP coordinates file names on its first line (None: it names none)."""
-    from .gcp.points import is_crs_line
+    from .io.gcp_points import is_crs_line
     from .io.odm import parse_odm_crs
 
     for n, ln in enumerate(Path(path).read_text(encoding="utf-8-sig").splitlines(), 1):

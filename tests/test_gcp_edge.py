@@ -11,7 +11,7 @@ import numpy as np
 
 from gtkit.camera import Camera
 from gtkit.gcp.marking import Block, ellipse_meets_rect, predictions_csv, solve
-from gtkit.gcp.points import GCPPoint
+from gtkit.io.gcp_points import GCPPoint
 from gtkit.pose import Pose
 
 

@@ -11,7 +11,7 @@ import pytest
 
 from gtkit.errors import GtkitError
 from gtkit.gcp.marking import load_block, solve
-from gtkit.gcp.points import read_points
+from gtkit.io.gcp_points import read_points
 from gtkit.gcp.site import load_marking, predict, save_clicks
 from gtkit.geo import GeoFrame
 from gtkit.io.odm import GCP, GCPClick, read_gcp_list, write_gcp_list

@@ -35,7 +35,7 @@ from ..io.poses import POSES
 from ..pose import Pose
 from ..sfm.geometry import triangulate_clicks
 from ..sfm.similarity import Similarity, collinearity, umeyama
-from .points import GCPPoint
+from ..io.gcp_points import GCPPoint
 
 CLICK_SIGMA_PX = 1.0     # a careful click on a GCP target (the sample's clicks: 0.5 px)
 FIT_FLOOR_M = 0.03       # a fit's residual scale is never taken below this (block shape + triangulation)

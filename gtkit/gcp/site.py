@@ -17,7 +17,7 @@ from ..errors import GtkitError
 from ..io.atomic import write_text
 from ..io.odm import GCP, GCPClick, read_gcp_list, write_gcp_list
 from .marking import CLICK_SIGMA_PX, Block, Solution, load_block, predictions_csv, solve
-from .points import GCPPoint, check_inside, load_points, points_path, read_points, write_points
+from ..io.gcp_points import GCPPoint, check_inside, load_points, points_path, read_points, write_points
 
 PREDICTED = Path("work") / "gcp" / "predicted.csv"
 
@@ -109,7 +109,7 @@ def footprint(project) -> np.ndarray | None:
 
 
 def import_points(project, file: str | Path, crs: str | None = None, settings: GcpSettings | None = None) -> dict:
-    """Read ``file`` (see :mod:`gtkit.gcp.points`), check it against the photos' footprint and store
+    """Read ``file`` (see :mod:`gtkit.io.gcp_points`), check it against the photos' footprint and store
     it as ``gcp/points.txt``; GCPs imported before under the same names are replaced. Returns counts
     and what matched ``gcp_list.txt``."""
     settings = settings or settings_for(project)

@@ -30,7 +30,7 @@ from ..errors import GtkitError
 from ..io.atomic import write_json, write_text
 from ..io.exif import read_photo_meta
 from ..io.poses import INTRINSICS, POSES, write_intrinsics, write_poses
-from ..gcp.points import points_path
+from ..io.gcp_points import points_path
 from ..photo_positions import positions_and_accuracy
 from ..project import (IMAGE_EXT, Project, cpu_seconds, file_fingerprint, mark_stage_done, settings_dict, settings_key,
                        stage_done, start_stage_clock)

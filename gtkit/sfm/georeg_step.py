@@ -176,7 +176,7 @@ def block_gcps(project, names: list[str], gcps: list[GCP] | None = None) -> list
 def stated_gcp_accuracy(project) -> dict[str, tuple]:
     """{GCP: (stated horizontal, vertical) metres} from ``gcp/points.txt``'s accuracy columns (the
     surveyor's coordinates, ``gtkit gcp import``); {} without the file."""
-    from ..gcp.points import load_points
+    from ..io.gcp_points import load_points
 
     return {p.name: (p.acc_h, p.acc_v if p.acc_v is not None else p.acc_h)
             for p in load_points(project.paths, project.frame) if p.acc_h is not None}

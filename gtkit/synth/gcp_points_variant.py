@@ -15,7 +15,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from ..gcp.points import GCPPoint, points_path, write_points
+from ..io.gcp_points import GCPPoint, points_path, write_points
 from ..io.odm import read_gcp_list
 from .photo_metadata import strip_metadata
 

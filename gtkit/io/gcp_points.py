@@ -25,8 +25,8 @@ import numpy as np
 
 from ..errors import GtkitError, Problems
 from ..geo import GeoFrame
-from ..io.atomic import write_text
-from ..io.odm import CHECK_WORDS, parse_odm_crs
+from .atomic import write_text
+from .odm import CHECK_WORDS, parse_odm_crs
 
 POINTS_FILE = Path("gcp") / "points.txt"
 _SPLIT = re.compile(r"[,;\s]+")
