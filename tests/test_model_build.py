@@ -62,7 +62,7 @@ def test_built_model_texture_matches_a_photo(built):
     """The textured model rendered at a reference photo's SfM pose looks like the photo."""
     from gtkit.io.mesh import load_model
     from gtkit.io.poses import read_intrinsics, read_poses
-    from gtkit.render.overlay import read_photo
+    from gtkit.io.photo import read_photo
     from gtkit.render.renderer import Renderer
 
     root, _ = built

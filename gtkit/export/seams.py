@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import GtkitError
+from ..io.photo import read_photo
 from .gapfill import Cameras
 from .grid import Grid
 
@@ -45,15 +45,6 @@ class Mosaic:
     names: list[str]           # photo of each index
     gains: np.ndarray          # (n_photos, 3) per-channel gains used (1 when not compensated)
     summary: dict
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise GtkitError("cannot read the photo", path)
-    return img[..., ::-1]
 
 
 def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -191,7 +182,7 @@ def mosaic(grid: Grid, heights: np.ndarray, cameras: Cameras, images: Path, *, f
         d[r0:r1, c0:c1] = distance_transform_edt(~region[r0:r1, c0:c1])
         dk = d.ravel()[cell[idx]]
         keep = dk <= B
-        img = _read_rgb(images / names[k])
+        img = read_photo(images / names[k])
         cols[k] = (idx[keep], _bilinear(img, uv[keep]), dk[keep])
     src = np.zeros((len(cell), 3), np.float32)        # each cell's colour from its source photo
     for k, (pos, c, _d) in cols.items():

@@ -12,11 +12,11 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import numpy as np
 
 from ..camera import Camera
 from ..errors import GtkitError
 from ..io.exif import read_photo_meta
+from ..io.photo import read_photo
 from ..io.poses import read_intrinsics
 from ..project import IMAGE_EXT, Project, file_fingerprint, mark_stage_done, stage_done, start_stage_clock
 from .rig import Rig, RigCalibrationSettings, ZoomSetting, calibrate_pairs
@@ -60,15 +60,6 @@ def nominal_zoom(name: str, meta, cams: dict[str, Camera], path: Path) -> Camera
                      "(or give the photo an EXIF FocalLengthIn35mmFilm)", path)
 
 
-def load_rgb(path: Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise GtkitError("not a readable image", path)
-    return img[..., ::-1]
-
-
 def run(project: Project | str | Path, settings: RigCalibrationSettings, force: bool = False) -> Rig:
     project = project if isinstance(project, Project) else Project.load(project)
     P = project.paths
@@ -99,7 +90,7 @@ def run(project: Project | str | Path, settings: RigCalibrationSettings, force: 
             groups[key] = len(init)
             init.append(ZoomSetting(nominal_zoom(z, meta, cams, P.cameras), key[2]))
         zoom_group[z] = groups[key]
-    rig = calibrate_pairs(pairs, wide_cams, init, zoom_group, settings, lambda n: load_rgb(P.images / n))
+    rig = calibrate_pairs(pairs, wide_cams, init, zoom_group, settings, lambda n: read_photo(P.images / n))
     rig.info["nominal"] = [s.camera.to_line() for s in init]
     rig.save(P.rig)
     mark_stage_done(stage_dir, settings, inputs, n_pairs=rig.info["n_pairs"], median_px=rig.info["median_px"])
