@@ -182,6 +182,7 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
             "mean_reproj_px": ref.get("mean_reproj_px"),
             "georegistered_with": geo.get("fitted_to") or geo.get("used"),
             "tilt_from": (geo.get("fit") or {}).get("tilt_from"),
+            "claimed_accuracy": geo.get("claimed_accuracy"),
             "absolute_accuracy_h_m": (geo.get("gps_quality") or {}).get("absolute_accuracy_h_m"),
             "absolute_accuracy_v_m": (geo.get("gps_quality") or {}).get("absolute_accuracy_v_m"),
             "altitude_drift_m": (geo.get("gps_quality") or {}).get("altitude_drift_m"),

@@ -106,6 +106,8 @@ def test_consumer_gps_block_claims_a_gps_bias_that_covers_the_truth(tiny_sample,
     GPS's typical bias to the positions' scatter, names it, covers the true offset; the reference
     report, `gtkit sfm`'s printout and the run summary print the same claim."""
     from gtkit.commands.run import print_summary
+    from gtkit.project import Project
+    from gtkit.run_site import collect
     from gtkit.commands.sfm import _print_reference
     from gtkit.sfm.blocks import run_reference
 
@@ -121,7 +123,7 @@ def test_consumer_gps_block_claims_a_gps_bias_that_covers_the_truth(tiny_sample,
     out = io.StringIO()
     with redirect_stdout(out):
         _print_reference(r)
-        print_summary({"project": str(root), "reference": {"n_registered": 1, "n_images": 1}, "stages": {}})
+        print_summary(collect(Project.load(root), []))
     assert out.getvalue().count(c["line"]) == 1 and c["short"] in out.getvalue(), out.getvalue()
 
 

@@ -54,19 +54,6 @@ def query_block_line(b: dict, registered_by: str | None) -> str:
     return f"no model of its own ({why}): placed {how} (pseudo-GT below)"
 
 
-def _claim_of(project: str) -> dict | None:
-    """The reference block's claimed accuracy as its report records it (reports/reference.json,
-    georegistration.claimed_accuracy), for a summary that does not carry it; None without one."""
-    import json
-    from pathlib import Path
-
-    try:
-        ref = json.loads((Path(project) / "reports" / "reference.json").read_text())
-    except (OSError, ValueError):
-        return None
-    return (ref.get("georegistration") or {}).get("claimed_accuracy")
-
-
 def print_summary(s: dict) -> None:
     ref, pg, loc, tr = (s.get(k) or {} for k in ("reference", "pseudo_gt", "localization", "tracking"))
     print(f"\n== gtkit run on {s['project']}")
@@ -74,7 +61,7 @@ def print_summary(s: dict) -> None:
         geo = f"georegistered to {ref.get('georegistered_with')}, RMSE {_f(ref.get('rmse_m'), unit=' m')}"
         if ref.get("tilt_from"):
             geo += f", tilt held by gravity ({ref['tilt_from']})"
-        claim = ref.get("claimed_accuracy") or _claim_of(s["project"])
+        claim = ref.get("claimed_accuracy")
         if claim:
             geo += f"; {claim['short']}"
         elif ref.get("absolute_accuracy_h_m") is not None and not ref.get("gcp_median_err_m"):
