@@ -17,7 +17,6 @@ This module is the library side of ``gtkit run`` (gtkit/commands/run.py parses a
 """
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -27,7 +26,7 @@ from typing import Callable
 import numpy as np
 
 from .errors import GtkitError
-from .io.atomic import write_json
+from .io.atomic import read_json_object, write_json
 from .logs import exception_words, write_traceback
 from .write_errors import machine_cause
 from .project import Project
@@ -155,13 +154,6 @@ def check_photos(project: Project, todo: list[str]) -> None:
     require_good_photos(project, tuple(sorted(folders)))
 
 
-def _load(path: Path) -> dict | None:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-
-
 def _median(values) -> float | None:
     v = [float(x) for x in values if x is not None]
     return float(np.median(v)) if v else None
@@ -174,7 +166,7 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
     out: dict = {"project": str(P.root), "stages": {r.name: {"status": r.status, "seconds": r.seconds,
                                                               **({"why": r.why} if r.why else {})}
                                                      for r in results}}
-    ref = _load(P.reports / "reference.json")
+    ref = read_json_object(P.reports / "reference.json")
     if ref:
         geo, held = ref.get("georegistration") or {}, ref.get("held_by_positions") or {}
         out["reference"] = {
@@ -193,7 +185,7 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
             "gps_residual_median_m": (held.get("residual_median_m") or {}).get("after")}
     state, path = model_state(project)
     out["model"] = {"source": state, "path": rel(project, path) if path else None}
-    qsum = _load(P.stage("sfm_queries") / "summary.json")
+    qsum = read_json_object(P.stage("sfm_queries") / "summary.json")
     if qsum:
         out["query_blocks"] = {s: ({"error": b["error"]} if "error" in b else
                                    {"n_registered": b.get("n_registered"), "n_images": b.get("n_images")})
@@ -213,15 +205,15 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
                                                if record.is_registered(i)},
                             "errors": {s: i.get("error") for s, i in record.sequences(reg).items()
                                        if not record.is_registered(i)}}
-    ali = _load(P.reports / "overlays" / "alignment.json")
+    ali = read_json_object(P.reports / "overlays" / "alignment.json")
     if ali:
         out["overlays"] = {k: ali.get(k) for k in ("median_misalignment_px", "median_edge_distance_px")}
         out["overlays"]["n_images"] = len(ali.get("images") or {})
-    loc = _load(P.stage("localize") / "status.json")
+    loc = read_json_object(P.stage("localize") / "status.json")
     if loc:
         out["localization"] = {"n_localized": loc.get("n_localized"), "n_queries": loc.get("n_queries"),
                                "database_views": loc.get("database_views")}
-    tr = _load(P.stage("track") / "summary.json")
+    tr = read_json_object(P.stage("track") / "summary.json")
     if tr:
         out["tracking"] = {k: tr.get(k) for k in ("n_located", "n_detections", "median_sigma_h_m")}
     placed = {q for q, by in ((out.get("pseudo_gt") or {}).get("registered_by") or {}).items() if by}

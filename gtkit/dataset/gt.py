@@ -17,7 +17,6 @@ degrees(sqrt(trace(C[:3, :3])))``. Only files are read here; nothing under ``tru
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import GtkitError
+from ..io.atomic import read_json_object
 from ..io.poses import COVARIANCES, read_covariances, read_intrinsics, read_poses
 from ..pose import Pose
 from ..project import Project
@@ -68,11 +68,7 @@ def _flagged_unverified(info: dict | None) -> str | None:
 
 def load_json(path: Path) -> dict:
     """A JSON object file, or {} where it is missing, unreadable or not an object."""
-    try:
-        d = json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {}
-    return d if isinstance(d, dict) else {}
+    return read_json_object(path) or {}
 
 
 def collect(project: Project) -> PublishedGT:

@@ -70,6 +70,16 @@ def write_json(path: str | Path, obj, indent: int = 2) -> Path:
     return write_text(path, json.dumps(obj, indent=indent, sort_keys=False, default=_json_default) + "\n")
 
 
+def read_json_object(path: str | Path) -> dict | None:
+    """A JSON object file as a dict, or None where it is missing, unreadable or not an object (for
+    readers of other stages' records, where a missing record means "not run")."""
+    try:
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) else None
+
+
 def _json_default(o):
     import numpy as np
 
