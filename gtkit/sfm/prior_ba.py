@@ -10,7 +10,7 @@ refines every pose and point again with each photo's position as a prior:
   scatter (1.4826 x MAD) of the block's horizontal and vertical residuals to the positions, never under
   ``min_sigma_m``: centimetre RTK holds the block, metre-grade consumer GPS barely pulls it;
 - intrinsics as the mapper left them (the camera model decisions are the mapper's);
-- without the points the block cannot place (:func:`drop_unplaceable_points`): a point a few metres
+- without the points the block cannot place (:func:`drop_unplaceable_points`): a point a metre
   from the cameras of one station (a false match between the photos of a multi-camera rig) or seen
   under a tiny angle made the solver's Schur complement indefinite, so that Ceres failed every other
   step (dense Cholesky) and stopped wherever that left it. Tiny seed 0: 4 such points of 5,876; with
@@ -48,8 +48,9 @@ def _scatter(r: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(r - np.median(r))))
 
 
-# a point nearer a photo than this share of the photo's median point depth: not ground seen from the
-# air (tiny seed 0: 4 points at 1.2 m from the three photos of one station flying 110 m up, ratio < 0.02)
+# a point nearer its nearest camera than this share of the block's median point-to-nearest-camera
+# distance (the flying height for an aerial block): not ground seen from the air (tiny seed 0: 4 points
+# 1.2 m from the three photos of one station flying 110 m up, ratio 0.013)
 MIN_DEPTH_RATIO = 0.1
 # a point whose rays meet under less than this: its depth is barely determined (COLMAP's mapper filters
 # at 1.5 deg; small seed 0: 6 points under 2 deg of 40,810 made 12 of 18 steps fail)
@@ -57,25 +58,17 @@ MIN_TRI_ANGLE_DEG = 2.0
 
 
 def _near_points(rec: pycolmap.Reconstruction, min_depth_ratio: float) -> list[int]:
-    """Points nearer one of their photos than ``min_depth_ratio`` x its median point depth."""
-    ids, img = [], []
-    for pid, p in rec.points3D.items():
-        for e in p.track.elements:
-            ids.append(pid)
-            img.append(e.image_id)
-    if not ids:
+    """Points nearer their nearest camera than ``min_depth_ratio`` x the block's median distance from a
+    point to its nearest camera."""
+    from scipy.spatial import cKDTree
+
+    centres = np.array([im.projection_center() for im in rec.images.values() if im.has_pose])
+    ids = np.fromiter(rec.points3D.keys(), np.int64, rec.num_points3D())
+    if len(ids) == 0 or len(centres) == 0:
         return []
-    ids, img = np.array(ids), np.array(img)
-    xyz = {pid: p.xyz for pid, p in rec.points3D.items()}
-    X = np.array([xyz[i] for i in ids])
-    depth = np.empty(len(ids))
-    ratio = np.empty(len(ids))
-    for iid in np.unique(img):
-        k = img == iid
-        m = rec.images[int(iid)].cam_from_world().matrix()
-        depth[k] = X[k] @ m[2, :3] + m[2, 3]
-        ratio[k] = depth[k] / max(float(np.median(depth[k])), 1e-9)
-    return sorted({int(i) for i in ids[ratio < min_depth_ratio]})
+    xyz = np.array([rec.points3D[int(i)].xyz for i in ids])
+    d, _ = cKDTree(centres).query(xyz)
+    return [int(i) for i in ids[d < min_depth_ratio * float(np.median(d))]]
 
 
 def drop_unplaceable_points(rec: pycolmap.Reconstruction, min_depth_ratio: float = MIN_DEPTH_RATIO,
