@@ -61,6 +61,36 @@ def test_fill_inside_the_footprint_only_and_from_valid_cells():
     assert not fill_gaps(h.astype(np.float32), grid, None).filled.any()
 
 
+def test_fill_of_a_plain_field_with_trees_stays_on_the_ground():
+    """A plain field given up by the model build, lined and dotted with trees (crowns 5 m high, each with
+    the skirt a Poisson surface drapes from the crown down to where the points end): the fill takes the
+    field's ground from its outer border, not the crowns (on its border: a plane clipped harder above
+    than below; inside it: islands standing above that plane are left out)."""
+    grid = Grid(0.0, 100.0, 0.5, 200, 200)
+    xc, yc = grid.centres()
+    X, Y = np.meshgrid(xc, yc)
+    truth = _surface(X, Y)
+    field = (np.abs(X - 37.5) < 18) & (np.abs(Y - 50) < 18)
+    rng = np.random.default_rng(3)
+    trees = np.r_[rng.uniform([24, 36], [51, 64], (8, 2)),                      # in the field
+                  np.c_[np.linspace(21, 54, 9), np.full(9, 32.0)]]               # along its southern edge
+    crown = np.zeros(X.shape, bool)
+    top = truth.copy()
+    for tx, ty in trees:
+        r = np.hypot(X - tx, Y - ty)
+        skirt = np.clip(5.0 - 3.0 * (r - 2.5), 0.0, 5.0)            # 5 m over the crown, down to 0.5 m at 4 m
+        top = np.maximum(top, truth + np.where(r < 4.0, skirt, 0.0))
+        crown |= r < 4.0
+    h = np.where(field & ~crown, np.nan, top)
+    gf = fill_gaps(h.astype(np.float32), grid, _four_cameras())
+    ground = field & ~crown
+    e = np.abs(gf.height - truth)[ground]
+    print(f"field with {len(trees)} trees: fill error vs ground median {np.median(e):.3f} m, p90 {np.percentile(e, 90):.3f} m")
+    # measured: median 0.009 m, p90 0.030 m; before (a plane fitted to the whole border, symmetric clipping,
+    # crowns and skirts kept): 0.66 / 1.07 m; without the skirts left out: 0.08 / 0.94 m
+    assert gf.filled[ground].all() and np.median(e) < 0.05 and np.percentile(e, 90) < 0.15
+
+
 def test_flown_area_is_the_hull_of_the_camera_centres():
     grid = Grid(0.0, 100.0, 1.0, 100, 100)
     m = flown_area(grid, np.array([[30, 35], [30, 65], [45, 35], [45, 65]]))

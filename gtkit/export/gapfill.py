@@ -27,6 +27,7 @@ from .grid import Grid
 log = logging.getLogger(__name__)
 
 DIRECT_MAX = 60_000       # unknowns solved directly (sparse LU); larger gaps go through a coarser grid first
+SKIRT_M = 3.0             # how far from a crown or roof on a gap's border its draped skirt is left out of the fill
 SMALL_GAP = 64            # cells: gaps up to this size are filled together, without the border's plane
 
 
@@ -105,18 +106,20 @@ def nearest_fill(height: np.ndarray) -> np.ndarray:
     return height[idx[0], idx[1]]
 
 
-def laplace_fill(height: np.ndarray, unknown: np.ndarray) -> np.ndarray:
+def laplace_fill(height: np.ndarray, unknown: np.ndarray, skirt_cells: int = 0) -> np.ndarray:
     """Heights for the ``unknown`` cells, each 4-connected region of them on its own: the plane
     fitted to the measured cells on the region's border (robustly: cells off it by more than three
     times the median deviation are left out) plus the harmonic interpolation (4-neighbour Laplace
     equation) of the border's deviations from that plane. Border cells that stand well above the
     border next to them (tree crowns, roofs: :func:`_border_plane`) are left out like cells outside
-    the footprint. Where the region is enclosed by measured
+    the footprint; so are measured islands inside the region that stand above its outer border's plane
+    (:func:`_standing_islands`: trees in a plain field, whose crowns would lift the field), with their
+    skirts up to ``skirt_cells`` away (:func:`_skirts`), and the plane is fitted to the outer border alone. Where the region is enclosed by measured
     cells this is the plain harmonic interpolation of the border (a plane is harmonic); where it
     meets cells that are neither measured nor unknown (outside the footprint, the DSM's edge) no flux
     crosses them, so the border's trend goes on and a sloping gap does not level off. Regions that
     touch no finite cell stay NaN. Returns a copy of ``height`` with the regions filled."""
-    from scipy.ndimage import find_objects, label
+    from scipy.ndimage import binary_fill_holes, find_objects, label
 
     h = height.astype(np.float64, copy=True)
     unknown = unknown & ~np.isfinite(h)
@@ -144,7 +147,15 @@ def laplace_fill(height: np.ndarray, unknown: np.ndarray) -> np.ndarray:
         ring = sub_k & _grow4(sub_u)
         if not ring.any():
             continue
-        trend, off = _border_plane(sub_h, ring)
+        islands = binary_fill_holes(sub_u) & sub_k       # measured cells the gap encloses (trees in a field)
+        outer = ring & ~islands
+        trend, off = _border_plane(sub_h, outer if outer.sum() >= 6 else ring)
+        if islands.any():
+            off |= _standing_islands(sub_h - trend, islands)
+        if skirt_cells > 0:               # crowns and roofs in the box, whose skirts may line the gap
+            standing = off | (sub_k & (sub_h - trend > 2.0))
+            if standing.any():
+                off |= _skirts(sub_h - trend, sub_k, standing, skirt_cells) & ring
         resid = np.where(sub_k, sub_h - trend, np.nan)
         if (ring & ~off).any():              # objects on the border (trees, roofs): not the gap's ground
             resid[off] = np.nan
@@ -152,6 +163,37 @@ def laplace_fill(height: np.ndarray, unknown: np.ndarray) -> np.ndarray:
         sol = _solve(resid, sub_u, sub_k)
         sub_h[sub_u] = sol[sub_u] + trend[sub_u]
     return h
+
+
+def _standing_islands(above: np.ndarray, islands: np.ndarray, object_m: float = 2.0) -> np.ndarray:
+    """The islands (8-connected groups of measured cells enclosed by a gap) that stand on the ground rather
+    than being it: any cell more than ``object_m`` above the gap's border plane (``above``: height minus
+    that plane). A tree in a plain field is such an island, crown and skirt together (the surface drapes
+    from the crown down to where the gap begins: its lower cells are not the ground either); a textured
+    patch of the field itself (a GCP target) is not, and the fill passes through its height."""
+    from scipy.ndimage import label, maximum
+
+    lab, n = label(islands, structure=np.ones((3, 3), bool))
+    if n == 0:
+        return np.zeros(islands.shape, bool)
+    top = np.asarray(maximum(above, lab, index=np.arange(1, n + 1)))
+    return np.r_[False, top > object_m][lab]
+
+
+def _skirts(above: np.ndarray, known: np.ndarray, objects: np.ndarray, cells: int, low_m: float = 0.25) -> np.ndarray:
+    """The measured cells that fall away from an object (``objects``) toward the gap while still above the
+    border plane by more than ``low_m``, within ``cells`` of it: the skirt a surface drapes from a crown or
+    a roof down to where its points end, which is not the ground beside it either."""
+    from scipy.ndimage import binary_dilation
+
+    up = known & (above > low_m)
+    grown = objects & up
+    for _ in range(cells):
+        nxt = binary_dilation(grown, structure=np.ones((3, 3), bool)) & up
+        if np.array_equal(nxt, grown):
+            break
+        grown = nxt
+    return grown
 
 
 def _grow4(m: np.ndarray) -> np.ndarray:
@@ -176,12 +218,16 @@ def _border_plane(h: np.ndarray, ring: np.ndarray, max_slope: float = 1.0,
     coef = np.array([float(np.median(z)), 0.0, 0.0])
     keep = np.ones(len(z), bool)
     if len(z) >= 6 and np.sqrt(max(np.linalg.eigvalsh(np.cov(A[:, 1:].T)).min(), 0.0)) >= 3.0:
-        for _ in range(4):
+        for _ in range(8):
             c = np.linalg.lstsq(A[keep], z[keep], rcond=None)[0]
             r = z - A @ c
-            keep = np.abs(r) <= max(3.0 * float(np.median(np.abs(r[keep]))), 0.05)   # the border's majority
-            if keep.sum() < 6:
+            mad = max(float(np.median(np.abs(r[keep]))), 0.05 / 3)
+            # the border's majority, clipped harder above than below: objects stand on the ground, so a
+            # border of ground and tree crowns (a plain field lined with trees) settles on the ground
+            keep_next = (r <= 1.5 * mad) & (r >= -3.0 * mad)
+            if keep_next.sum() < 6:
                 break
+            keep = keep_next
         else:
             if np.hypot(c[1], c[2]) <= max_slope:
                 coef = c
@@ -311,7 +357,7 @@ def fill_gaps(height: np.ndarray, grid: Grid, cameras: Cameras | None, *, enable
                 from scipy.ndimage import distance_transform_edt
 
                 unknown &= distance_transform_edt(~np.isfinite(h)) * grid.res <= max_distance_m
-            h = laplace_fill(h, unknown)
+            h = laplace_fill(h, unknown, skirt_cells=int(np.ceil(SKIRT_M / grid.res)))
     if small_holes > 0:
         from .surface import fill_small_holes
 
