@@ -138,8 +138,21 @@ def _depth_map(n: str, nb: list[str], views, img, settings: ModelSettings, folde
     pair = [d for m in nb if (d := D.pair_depth(views[n], views[m], img(n), img(m), settings)) is not None]
     if len(pair) < settings.min_pair_agree:
         return f"only {len(pair)} neighbour pair(s) could be rectified"
-    D.write_depth(D.depth_file(folder, n), D.combine_pairs(pair, settings), {"neighbours": nb})
+    depth, had, gone = D.texture_test(D.combine_pairs(pair, settings), img(n), settings)
+    D.write_depth(D.depth_file(folder, n), depth, {"neighbours": nb, "had_depth": had, "textureless": gone})
     return None
+
+
+def textureless_share(folder: Path, names) -> dict:
+    """What the texture test gave up over the written depth maps: pixels with a depth before it, given up, and
+    the share (of the pixels that had a depth)."""
+    had = gone = 0
+    for n in names:
+        f = D.depth_file(folder, n)
+        if f.is_file():
+            h, g = D.read_depth_counts(f)
+            had, gone = had + h, gone + g
+    return {"pixels_with_depth": had, "given_up": gone, "share": round(gone / had, 4) if had else 0.0}
 
 
 # photos a depth task: consecutive photos (a flight strip) share neighbours, whose images the task
@@ -290,7 +303,8 @@ def depth_folder(project: Project, settings: ModelSettings, method: str) -> Path
     depth_keys = {k: v for k, v in settings_dict(settings).items()
                   if k in ("max_image_size", "neighbours", "min_neighbours", "max_angle_deg", "baseline_ratio",
                            "target_ratio", "max_disparities", "block_size", "pair_agree", "min_pair_agree",
-                           "sgbm_disparity_bias_px")}
+                           "sgbm_disparity_bias_px", "texture_min_contrast", "texture_window",
+                           "texture_margin_px")}
     if method != "sgbm":                  # (the SGBM maps' folder name is what it was before there was a choice)
         depth_keys["method"] = method
     key = settings_key({"depth": depth_keys, "inputs": _inputs(project), "version": DEPTH_VERSION})
@@ -334,7 +348,11 @@ def run(project: Project | str | Path, settings: ModelSettings, *, force: bool =
     _mark("depth", t, mem, cpu)
     if method != "patchmatch" and executor is not None and _children_peak_gb() > kids:
         mem["depth"] = max(mem["depth"], _children_peak_gb())   # a local worker's peak, if more than this process's
-    _step_done("depth", t, mem, f"{len(neighbours) - len(failed)} depth maps ({method})")
+    textureless = textureless_share(folder, neighbours) if method != "patchmatch" else None
+    _step_done("depth", t, mem, f"{len(neighbours) - len(failed)} depth maps ({method})" + (
+        f"; texture test: {100 * textureless['share']:.1f} % of the depth given up as textureless "
+        f"(contrast < {settings.texture_min_contrast:g} DN over {settings.texture_window} px, and "
+        f"{settings.texture_margin_px} px around)" if textureless else ""))
 
     cloud = fuse(project, views, neighbours, settings, folder, show, force=force)
     n_points = len(cloud)
@@ -399,7 +417,7 @@ def run(project: Project | str | Path, settings: ModelSettings, *, force: bool =
     for s in steps:
         cpu_s[s], prev = round(cpu[s] - prev, 1), cpu[s]
     summary = {"model": str(out.relative_to(P.root)), "photos": n_photos,
-               "depth_maps": len(neighbours) - len(failed), "depth_method": method, "skipped": skipped, "points": int(n_points),
+               "depth_maps": len(neighbours) - len(failed), "depth_method": method, "textureless": textureless, "skipped": skipped, "points": int(n_points),
                "poisson_triangles": int(n_poisson), "triangles": int(len(F)), "parts": n_parts,
                "surface_tiles": n_tiles, "unseen_faces": int((best < 0).sum()), "seam_colour_diff": seam_diff, "seconds": seconds,
                "cpu_seconds": cpu_s, "peak_memory_gb": {k: round(v, 2) for k, v in mem.items()},

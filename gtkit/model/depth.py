@@ -6,7 +6,10 @@ pictures whole, so a baseline along the image's y axis is no problem), OpenCV's 
 census-like costs aggregated along 3 paths, 1/16 px disparities, left-right check) finds the
 disparities in the range the sparse SfM points allow, and each disparity becomes a distance
 along the photo's own pixel ray. A pixel keeps a depth where at least ``min_pair_agree`` pairs
-agree within ``pair_agree`` (relative); its depth is their mean.
+agree within ``pair_agree`` (relative); its depth is their mean. Then the texture test
+(:func:`texture_test`) gives up the depth of pixels whose surroundings have too little contrast to
+match (plain grass, water, blank roofs): SGBM lays a smooth but false surface there that the pairs and
+photos agree on; the DSM's gap fill interpolates such areas and marks them instead.
 
 Depth maps are written one file a photo (``work/model/depth/<name>.npz``, atomically), so a killed
 run keeps the finished ones.
@@ -124,6 +127,40 @@ def pair_depth(a: View, b: View, img_a: np.ndarray, img_b: np.ndarray, settings:
     return lam_a / np.sqrt(ua[None, :] ** 2 + va[:, None] ** 2 + 1.0)
 
 
+TEXTURE_SMOOTH_PX = 1.5      # Gaussian sigma of the texture test's smoothing (leaves ~0.19 of white noise)
+
+
+def local_contrast(gray: np.ndarray, window: int) -> np.ndarray:
+    """Per pixel: the standard deviation (DN) of the picture smoothed by :data:`TEXTURE_SMOOTH_PX` over a
+    ``window`` x ``window`` box around it (the texture SGBM has to match there, sensor noise mostly
+    smoothed away)."""
+    import cv2
+
+    g = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), TEXTURE_SMOOTH_PX)
+    m = cv2.blur(g, (window, window), borderType=cv2.BORDER_REFLECT)
+    m2 = cv2.blur(g * g, (window, window), borderType=cv2.BORDER_REFLECT)
+    return np.sqrt(np.maximum(m2 - m * m, 0.0))
+
+
+def texture_test(depth: np.ndarray, gray: np.ndarray, settings: ModelSettings) -> tuple[np.ndarray, int, int]:
+    """The depth map with the pixels of too little texture and a margin around them given up (NaN; see
+    ``ModelSettings.texture_min_contrast``, ``texture_margin_px``), how many pixels had a depth and how many
+    were given up."""
+    had = np.isfinite(depth)
+    n_had = int(had.sum())
+    if settings.texture_min_contrast <= 0:
+        return depth, n_had, 0
+    plain = local_contrast(gray, settings.texture_window) < settings.texture_min_contrast
+    r = int(settings.texture_margin_px)
+    if r > 0 and plain.any():        # and the margin around it (see ModelSettings.texture_margin_px)
+        import cv2
+
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        plain = cv2.dilate(plain.astype(np.uint8), disc) > 0
+    gone = had & plain
+    return np.where(gone, np.nan, depth).astype(np.float32), n_had, int(gone.sum())
+
+
 def combine_pairs(depths: list[np.ndarray], settings: ModelSettings) -> np.ndarray:
     """Per pixel: the mean of the pair depths that agree with their median (NaN where fewer than
     ``min_pair_agree`` agree)."""
@@ -152,3 +189,12 @@ def write_depth(path: Path, depth: np.ndarray, info: dict) -> None:
 def read_depth(path: Path) -> np.ndarray:
     with np.load(path) as z:
         return z["depth"]
+
+
+def read_depth_counts(path: Path) -> tuple[int, int]:
+    """(pixels with a depth before the texture test, pixels it gave up) of a written depth map ((0, 0) for a
+    map written without the counts)."""
+    with np.load(path) as z:
+        if "had_depth" not in z.files:
+            return 0, 0
+        return int(z["had_depth"]), int(z["textureless"])
