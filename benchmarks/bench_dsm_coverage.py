@@ -77,6 +77,14 @@ def records(site: Path) -> tuple[dict, dict]:
             read_stage_record(site / "work" / "export_ortho").summary)
 
 
+def given_up(site: Path) -> str:
+    """What the model build's texture test gave up (its record), as a note."""
+    from gtkit.project import read_stage_record
+
+    t = read_stage_record(site / "work" / "model").summary.get("textureless")
+    return "texture test off / not recorded" if not t else f"{100 * t['share']:.1f} % of the depth given up as textureless"
+
+
 def truth_dsm(site: Path, grid):
     from gtkit.export.surface import MeshSurface
     from gtkit.synth.truth import read_world_ply
@@ -146,7 +154,7 @@ def main(argv=None) -> int:
         dsm = Dsm.for_project(site)
         true = truth_dsm(site, dsm.grid)
         rows.append(row(f"{args.preset} seed {args.seed}", d, o, fill_errors(dsm, true, flown(site, dsm.grid)),
-                        f"DSM vs truth on measured cells {err_stats((dsm.heights - true)[~dsm.filled])} m"))
+                        f"DSM vs truth on measured cells {err_stats((dsm.heights - true)[~dsm.filled])} m; {given_up(site)}"))
     if "plain" in sites or "plain-cut" in sites:
         site = site_copy(work, base, f"{args.preset}{args.seed}_plain", "plain-grass")
         seconds["plain"] = build(site)
@@ -159,7 +167,7 @@ def main(argv=None) -> int:
                             fill_errors(dsm, true, flown(site, dsm.grid)),
                             f"DSM vs truth in the plain square {err_stats((dsm.heights - true)[sq])} m "
                             f"({100 * dsm.filled[sq].mean():.0f} % of it filled), elsewhere "
-                            f"{err_stats((dsm.heights - true)[~sq & ~dsm.filled])} m"))
+                            f"{err_stats((dsm.heights - true)[~sq & ~dsm.filled])} m; {given_up(site)}"))
         if "plain-cut" in sites:
             cut = square_mask(site, dsm.grid)
             h = np.where(cut | dsm.filled, np.nan, dsm.heights).astype(np.float32)
@@ -180,7 +188,7 @@ def main(argv=None) -> int:
             gtkit("init", site, "--reference", ref)
         seconds["brighton"] = build(site)
         d, o = records(site)
-        rows.append(row("Brighton (18 real nadir photos)", d, o))
+        rows.append(row("Brighton (18 real nadir photos)", d, o, extra=given_up(site)))
     cols = [("site", "site"), ("flown_before", "valid in flown area before %"), ("flown_after", "after %"),
             ("filled", "filled % of DSM"), ("fill_err", "fill error vs truth, median / p90 m (filled cells in the flown area; all filled cells)"),
             ("seam", "seam_difference before -> after"), ("seam_within", "within one photo"),
