@@ -58,6 +58,18 @@ def test_built_model_dsm_against_the_true_world(built):
     assert abs(m["bias"]) < 0.05
 
 
+def test_texture_test_is_in_the_record(built):
+    """The model's record says how much depth the texture test gave up (the log line too): on the tiny sample
+    its pond and plain roofs, with the margin around them (measured 8.3 % at the default working size)."""
+    from gtkit.project import read_stage_record
+
+    root, summary = built
+    t = summary["textureless"]
+    assert t == read_stage_record(root / "work" / "model").summary["textureless"]
+    assert t["pixels_with_depth"] > 100_000 and 0.01 < t["share"] < 0.2
+    assert abs(t["given_up"] / t["pixels_with_depth"] - t["share"]) < 1e-4
+
+
 def test_built_model_texture_matches_a_photo(built):
     """The textured model rendered at a reference photo's SfM pose looks like the photo."""
     from gtkit.io.mesh import load_model
