@@ -13,6 +13,10 @@ On a copy of SITE (photos linked, not copied):
 
     python benchmarks/bench_georeg_step.py SITE --work /tmp/w [--geo] [--move 0.5]
     python benchmarks/bench_georeg_step.py --brighton --work /tmp/w --geo    # the shared Brighton photos
+    python benchmarks/bench_georeg_step.py BUILT_SITE --work /tmp/w --repeat 3 [--no-force]
+
+A SITE whose reference block is already built (its ``work/`` is copied too) skips the full first SfM:
+its first run is then the georegistration alone (the click held back).
 
 Timings on a shared, loaded machine are upper bounds (the load average is printed)."""
 from __future__ import annotations
@@ -106,21 +110,41 @@ def compare(a: Path, b: Path) -> dict:
             "centre_median_mm": round(1000 * float(np.median(dc)), 4), "rotation_max_deg": round(float(dr.max()), 6)}
 
 
-def step_case(site: Path, work: Path, label: str) -> dict:
+def step_case(site: Path, work: Path, label: str, undo=None, redo=None, repeat: int = 1, force: bool = True) -> dict:
+    """The step after the edit, timed; with ``repeat`` > 1 the edit undone and redone (``undo`` / ``redo``)
+    and the step timed again each time (2 runs a repeat; min and median reported: a loaded machine's
+    noise is one-sided). Then, with ``force``, a full re-run on a copy and the two blocks compared."""
     mapped = site / "work" / "sfm_reference" / "mapped" / "mapped.json"
     before = mapped.stat().st_mtime_ns
     load0 = os.getloadavg()[0]
     t = gtkit("sfm", site, "--block", "reference")
-    cpu = LAST_CPU[0]
+    runs = [(t, LAST_CPU[0], load0)]
     block = json.loads((site / "work" / "sfm_reference" / "block.json").read_text())
-    print(f"{label}: gtkit sfm {t:.1f} s wall, {cpu:.1f} s CPU (load {load0:.1f}); now the --force run", flush=True)
-    full = copy_site(site, work / f"force_{label}")
-    t_full = gtkit("sfm", full, "--block", "reference", "--force")
-    return {"case": label, "seconds": round(t, 2), "cpu_seconds": round(cpu, 2), "load_avg_1m": round(load0, 2),
-            "georegistration_step_cpu_s": (block.get("cpu_seconds") or {}).get("georegistration"),
-            "mapping_reused": bool((block.get("mapping") or {}).get("reused")),
-            "mapped_models_untouched": mapped.stat().st_mtime_ns == before,
-            "force_seconds": round(t_full, 1), "vs_force": compare(site, full)}
+    for _ in range(repeat - 1):
+        for edit in (undo, redo):
+            edit()
+            load = os.getloadavg()[0]
+            runs.append((gtkit("sfm", site, "--block", "reference"), LAST_CPU[0], load))
+    wall, cpu = np.array([r[0] for r in runs]), np.array([r[1] for r in runs])
+    print(f"{label}: gtkit sfm {t:.1f} s wall, {runs[0][1]:.1f} s CPU (load {load0:.1f})"
+          + (f"; {len(runs)} runs: wall min {wall.min():.1f} / median {np.median(wall):.1f} s, CPU min "
+             f"{cpu.min():.1f} / median {np.median(cpu):.1f} s" if len(runs) > 1 else ""), flush=True)
+    out = {"case": label, "seconds": round(t, 2), "cpu_seconds": round(runs[0][1], 2), "load_avg_1m": round(load0, 2),
+           "georegistration_step_cpu_s": (block.get("cpu_seconds") or {}).get("georegistration"),
+           "mapping_reused": bool((block.get("mapping") or {}).get("reused")),
+           "mapped_models_untouched": mapped.stat().st_mtime_ns == before,
+           "held_by_positions": {k: (block.get("held_by_positions") or {}).get(k)
+                                 for k in ("points_dropped", "iterations", "converged", "seconds")}}
+    if len(runs) > 1:
+        out["runs"] = [{"wall_s": round(w, 2), "cpu_s": round(c, 2), "load_avg_1m": round(lo, 2)} for w, c, lo in runs]
+        out.update(wall_min_s=round(float(wall.min()), 2), wall_median_s=round(float(np.median(wall)), 2),
+                   cpu_min_s=round(float(cpu.min()), 2), cpu_median_s=round(float(np.median(cpu)), 2))
+    if force:
+        print(f"{label}: now the --force run", flush=True)
+        full = copy_site(site, work / f"force_{label}")
+        out["force_seconds"] = round(gtkit("sfm", full, "--block", "reference", "--force"), 1)
+        out["vs_force"] = compare(site, full)
+    return out
 
 
 def main(argv=None) -> int:
@@ -130,6 +154,9 @@ def main(argv=None) -> int:
     ap.add_argument("--work", required=True)
     ap.add_argument("--geo", action="store_true", help="write geo.txt from the photos' positions; also move one")
     ap.add_argument("--move", type=float, default=0.5, help="metres one geo.txt position moves east")
+    ap.add_argument("--repeat", type=int, default=1, help="time the step 2 x REPEAT - 1 times (the edit undone and "
+                    "redone): min and median")
+    ap.add_argument("--no-force", action="store_true", help="time the step only (no full re-run to compare with)")
     a = ap.parse_args(argv)
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -146,12 +173,20 @@ def main(argv=None) -> int:
     print(f"first run: {t0:.1f} s wall, {LAST_CPU[0]:.1f} s CPU", flush=True)
     out = {"site": str(a.site or BRIGHTON), "first_run_seconds": round(t0, 1), "cases": []}
     if held is not None:
-        with open(gl, "a") as f:
-            f.write(held + "\n")
-        out["cases"].append(step_case(site, work, "gcp_click"))
+        without = gl.read_text()
+
+        def add_click():
+            gl.write_text(without + held + "\n")
+
+        add_click()
+        out["cases"].append(step_case(site, work, "gcp_click", lambda: gl.write_text(without), add_click,
+                                      a.repeat, not a.no_force))
     if a.geo:
+        before = (site / "geo.txt").read_text()
         out["moved_photo"] = move_one_position(site, a.move)
-        out["cases"].append(step_case(site, work, "geo_txt_move"))
+        after = (site / "geo.txt").read_text()
+        out["cases"].append(step_case(site, work, "geo_txt_move", lambda: (site / "geo.txt").write_text(before),
+                                      lambda: (site / "geo.txt").write_text(after), a.repeat, not a.no_force))
     print(json.dumps(out, indent=1))
     return 0
 
