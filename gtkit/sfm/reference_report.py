@@ -137,6 +137,20 @@ def gcp_table(residuals: dict) -> list[str]:
     return out
 
 
+def _ba_run(h: dict) -> str:
+    """How the pose-prior BA ran (gtkit.sfm.prior_ba): its steps, and the points left out of it."""
+    from .prior_ba import MIN_TRI_ANGLE_DEG
+
+    it, drop = h.get("iterations") or {}, h.get("points_dropped") or {}
+    out = ""
+    if it:
+        out += f"; {it['steps']} steps ({it['failed']} failed)" + ("" if h.get("converged") else ", not converged")
+    if sum(drop.values()):
+        out += (f"; {sum(drop.values())} points it cannot place left out ({drop.get('near_a_photo', 0)} near a photo, "
+                f"{drop.get('small_angle', 0)} seen under < {MIN_TRI_ANGLE_DEG:g} deg)")
+    return out
+
+
 def write_reference_report(paths: Paths, summary: dict) -> dict:
     rep = reference_report(summary)
     write_json(paths.reports / "reference.json", rep)
@@ -164,7 +178,8 @@ def write_reference_report(paths: Paths, summary: dict) -> dict:
     if h and h.get("applied"):
         lines.append(f"- held by its positions in a pose-prior BA: {h['n_priors']} photos, sigma {_f(h['sigma_h_m'])} m "
                      f"horizontal / {_f(h['sigma_v_m'])} m vertical ({h['n_stated_accuracy']} with a stated accuracy); "
-                     f"residual median {_f(h['residual_median_m']['before'])} -> {_f(h['residual_median_m']['after'])} m")
+                     f"residual median {_f(h['residual_median_m']['before'])} -> {_f(h['residual_median_m']['after'])} m"
+                     + _ba_run(h))
     elif h:
         lines.append(f"- not held by its positions: {h.get('reason')}")
     if rep["gcp_residuals"]:
