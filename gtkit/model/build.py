@@ -37,7 +37,8 @@ log = logging.getLogger(__name__)
 
 
 class NoStereo(GtkitError):
-    """The reference block's photos cannot make a model (too few, or none with stereo neighbours): the
+    """The reference block's photos cannot make a model (too few, none with stereo neighbours, or depth
+    maps that agree nowhere, as on an 8-photo facade set whose neighbours are 30+ deg apart): the
     project goes on without one where it can (``gtkit run``: the pseudo-GT's automatic ties stay on
     the reference SfM's own points; the stages that draw a model say they cannot run)."""
 STAGE = "model"
@@ -357,7 +358,8 @@ def run(project: Project | str | Path, settings: ModelSettings, *, force: bool =
     cloud = fuse(project, views, neighbours, settings, folder, show, force=force)
     n_points = len(cloud)
     if n_points < 100:
-        raise GtkitError(f"fusion kept only {n_points} points: the depth maps do not agree", folder)
+        raise NoStereo(f"fusion kept only {n_points} points: the {len(neighbours) - len(failed)} depth maps do not "
+                       "agree where they overlap", folder)
     laz = work / "points.laz"
     stamp = cloud.folder / "laz.done"
     if force or not (laz.is_file() and stamp.is_file()):
