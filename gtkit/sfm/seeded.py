@@ -180,7 +180,7 @@ def _prior_ba(rec, positions, outliers, accuracy, num_threads, max_iterations) -
     """The seeding BA: positions as loose priors (a stated accuracy where tighter), every pose and point free."""
     loose = {n: min(SEED_SIGMA_M, a) for n, a in accuracy.items()}
     return hold_by_positions(rec, positions, outliers, loose, min_sigma_m=SEED_SIGMA_M, max_iterations=max_iterations,
-                             num_threads=num_threads, drop_points=False, function_tolerance=0.0)
+                             num_threads=num_threads, seeding=True)
 
 
 def _seed(cache: pycolmap.DatabaseCache, names: list[str], positions: dict, metas: dict,
