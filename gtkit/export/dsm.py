@@ -37,7 +37,7 @@ from ..project import Project, settings_dict
 from .geotiff import write_geotiff
 from .grid import Grid, nice_resolution
 from .sources import load_surface, run_raster_stage
-from .gapfill import Cameras, fill_gaps, project_cameras
+from .gapfill import GAPFILL_VERSION, Cameras, fill_gaps, project_cameras
 from .surface import MeshSurface, ObjMeshSurface, PointSurface, SurfaceRaster, TiledSurface, rasterize_surface
 
 log = logging.getLogger(__name__)
@@ -153,7 +153,8 @@ def run(project: Project | str | Path, settings: DsmSettings, input: str | Path 
         return make_dsm(source, frame, out, s, name, cameras=project_cameras(proj) if s.gap_fill else None)
 
     return run_raster_stage(proj, settings, input, crs, offset, out, default_out=P.dsm, stage=STAGE,
-                            make=make, label="DSM", textures=False, extra_files=cams)
+                            make=make, label="DSM", textures=False, extra_files=cams,
+                            version=f"gapfill {GAPFILL_VERSION}" if settings.gap_fill else None)
 
 
 def run_file(input: str | Path, out: str | Path, settings: DsmSettings, crs: str | None = None,

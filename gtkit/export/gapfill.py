@@ -26,6 +26,7 @@ from .grid import Grid
 
 log = logging.getLogger(__name__)
 
+GAPFILL_VERSION = 2        # bump when the fill's method changes (a DSM filled by another version is made again)
 DIRECT_MAX = 60_000       # unknowns solved directly (sparse LU); larger gaps go through a coarser grid first
 SKIRT_M = 3.0             # how far from a crown or roof on a gap's border its draped skirt is left out of the fill
 SMALL_GAP = 64            # cells: gaps up to this size are filled together, without the border's plane

@@ -126,12 +126,13 @@ def stage_inputs(project, src: Path, crs: str | None, offset, out: Path, extra_f
 
 
 def run_raster_stage(project, settings, input, crs, offset, out, *, default_out: Path, stage: str,
-                     make, label: str, textures: bool = True, extra_files=()) -> Path:
+                     make, label: str, textures: bool = True, extra_files=(), version: str | None = None) -> Path:
     """The body every raster export stage shares (DSM, orthophoto): the reference model (or
     ``input``) -> ``out`` (default ``default_out``) through ``make(source, frame, out, settings,
     name)``; skipped when the output exists and settings and inputs are unchanged. ``textures``:
     whether ``make`` needs the model's colours (see :func:`load_surface`); ``extra_files``: other
-    files ``make`` reads, part of the resume key."""
+    files ``make`` reads, part of the resume key; ``version``: the method's version (a finished
+    output of another version is made again)."""
     import logging
 
     from ..project import mark_stage_done, relative_paths, stage_done
@@ -140,6 +141,8 @@ def run_raster_stage(project, settings, input, crs, offset, out, *, default_out:
     out = Path(out) if out is not None else default_out
     stage_dir = project.paths.stage(stage)
     inputs = stage_inputs(project, src, crs, offset, out, extra_files)
+    if version is not None:
+        inputs["method_version"] = version
     if stage_done(stage_dir, settings, inputs) and out.is_file():  # stage_done first: it starts the clock and the log
         logging.getLogger(__name__).info("%s %s is up to date (settings unchanged); skipping", label, out)
         return out
