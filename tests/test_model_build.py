@@ -462,6 +462,7 @@ def test_build_killed_during_depth_maps_resumes(built, tmp_path):
     assert not (root / "model" / "reference.obj").exists()
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
+    assert "% of the depth given up as textureless" in done.stdout, done.stdout   # the texture test's share, said
     after = maps()
     assert len(after) == summary0["depth_maps"]
     assert all(p.stat().st_mtime_ns == t for p, t in kept.items())       # not recomputed

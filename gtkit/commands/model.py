@@ -60,6 +60,9 @@ def run_build(args):
     r = run(project, s, force=args.force, use=True if args.use else None, executor=executor_settings(args))
     print(f"model: {r['model']} ({r['triangles']} triangles, {r['parts']} textured parts) from {r['depth_maps']} "
           f"depth maps ({r.get('depth_method', 'sgbm')}) of {r['photos']} photos; {r['points']} fused points")
+    if r.get("textureless"):
+        print(f"texture test: {100 * r['textureless']['share']:.1f} % of the depth given up as textureless (plain ground, "
+              "water: the DSM fills it, marked; [model_build] texture_min_contrast = 0 turns the test off)")
     print("seconds " + ", ".join(f"{k} {v}" for k, v in r["seconds"].items())
           + "; peak memory GB " + ", ".join(f"{k} {v}" for k, v in r["peak_memory_gb"].items()))
     for n, why in r["skipped"].items():
