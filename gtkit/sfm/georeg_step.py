@@ -21,7 +21,7 @@ says how far they moved since the mapping), except for a seeded block, which is 
 (:func:`reusable`). The mapping also re-runs when the edit changes what the mapper is
 (:func:`mapping_inputs`: which photos have a position, whether the block can be seeded), and with
 ``--force``. Measured (docs/benchmarks.md, issue 57): after one more GCP click the block's poses are
-those of a full re-run (0.0 mm, tiny, small and medium samples; the step 0.1 / 2.9 / 27 CPU s, most of
+those of a full re-run (0.0 mm, tiny, small and medium samples; the step 0.6 / 3.2 / 27 CPU s, most of
 it the pose-prior BA, gtkit.sfm.prior_ba); after a position moved 0.5 m on the shared Brighton photos
 (incremental mapper), 0.0006 mm from a full re-run's. Inputs that differ by rounding (geo.txt at
 0.1 mm) give blocks within 0.06 mm of each other.
