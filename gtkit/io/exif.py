@@ -109,8 +109,9 @@ def read_photo_meta(path: str | Path, require: tuple[str, ...] = ()) -> PhotoMet
     if not path.is_file():
         raise GtkitError("image not found", path)
     try:
-        with Image.open(path) as im:
-            im.verify() if path.suffix.lower() not in (".jpg", ".jpeg") else None
+        if path.suffix.lower() not in (".jpg", ".jpeg"):   # (a JPEG's end is checked below)
+            with Image.open(path) as im:
+                im.verify()
         with Image.open(path) as im:
             w, h = im.size
             exif = im.getexif()

