@@ -93,6 +93,22 @@ def yardstick(tmp_path_factory):
     return base / "ALL"
 
 
+def true_reference_views(root) -> dict:
+    """The reference photos of a sample project as model views at their true poses (truth/), at full size."""
+    import numpy as np
+
+    from gtkit.io.poses import read_intrinsics, read_poses
+    from gtkit.model.views import View
+
+    poses, cams = read_poses(root / "truth" / "poses.txt"), read_intrinsics(root / "truth" / "intrinsics.txt")
+    views = {}
+    for n, c in cams.items():
+        if n.startswith("reference/"):
+            K = np.array([[c.fx, 0, c.cx - 0.5], [0, c.fy, c.cy - 0.5], [0, 0, 1.0]])
+            views[n] = View(n, c, poses[n], 1.0, c.width, c.height, K, 30.0, 300.0, 100.0)
+    return views
+
+
 def stage_settings(stage: str, project, cli: dict | None = None):
     """A stage's settings as every entry point resolves them (gtkit.stages.settings_for: flags >
     project.toml > defaults); ``project`` a Project or its folder."""

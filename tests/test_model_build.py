@@ -18,6 +18,8 @@ from gtkit.errors import GtkitError
 from gtkit.model.settings import ModelSettings
 from gtkit.project import Project
 
+from conftest import true_reference_views
+
 # a lighter build than the default, to fit the test suite's time (measured on the tiny sample)
 FAST = ModelSettings(max_image_size=480, neighbours=3, max_triangles=150_000)
 
@@ -137,20 +139,14 @@ def test_depth_maps_resume_per_photo(built, tmp_path):
 def test_pair_depth_against_rendered_truth(tiny_sample):
     """One rectified SGBM pair at true poses: median depth error within 0.3 % of the true surface's
     (measured 0.07 %; a pair of 60 % overlap fills about a third of the photo)."""
-    from gtkit.io.poses import read_intrinsics, read_poses
     from gtkit.model import depth as D
     from gtkit.model.texture import _gtkit_camera
-    from gtkit.model.views import View, choose_neighbours, load_image
+    from gtkit.model.views import choose_neighbours, load_image
     from gtkit.render.renderer import Renderer
     from gtkit.synth.truth import read_world_ply
 
     root = tiny_sample[0]
-    poses, cams = read_poses(root / "truth" / "poses.txt"), read_intrinsics(root / "truth" / "intrinsics.txt")
-    views = {}
-    for n, c in cams.items():
-        if n.startswith("reference/"):
-            K = np.array([[c.fx, 0, c.cx - 0.5], [0, c.fy, c.cy - 0.5], [0, 0, 1.0]])
-            views[n] = View(n, c, poses[n], 1.0, c.width, c.height, K, 30.0, 300.0, 100.0)
+    views = true_reference_views(root)
     s = ModelSettings()
     nb, _ = choose_neighbours(views, s)
     proj = Project.load(root)

@@ -19,12 +19,12 @@ import pytest
 from gtkit.model.settings import ModelSettings
 from gtkit.project import Project
 
+from conftest import true_reference_views
+
 
 @pytest.fixture(scope="module")
 def plain(tiny_sample, tmp_path_factory):
     """The plain-grass variant, its views at the true poses, the square, the true surface renderer."""
-    from gtkit.io.poses import read_intrinsics, read_poses
-    from gtkit.model.views import View
     from gtkit.render.renderer import Renderer
     from gtkit.synth.truth import read_world_ply
     from gtkit.synth.variants import apply_variant
@@ -34,12 +34,7 @@ def plain(tiny_sample, tmp_path_factory):
     apply_variant(root, "plain-grass")
     info = json.loads((root / "truth" / "plain_area.json").read_text())
     square = (*info["square_centre_xy"], info["half_side_m"])
-    poses, cams = read_poses(root / "truth" / "poses.txt"), read_intrinsics(root / "truth" / "intrinsics.txt")
-    views = {}
-    for n, c in cams.items():
-        if n.startswith("reference/"):
-            K = np.array([[c.fx, 0, c.cx - 0.5], [0, c.fy, c.cy - 0.5], [0, 0, 1.0]])
-            views[n] = View(n, c, poses[n], 1.0, c.width, c.height, K, 30.0, 300.0, 100.0)
+    views = true_reference_views(root)
     world = read_world_ply(root / "truth" / "world.ply")
     return root, views, square, world, Renderer(world)
 
