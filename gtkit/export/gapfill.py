@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 
 GAPFILL_VERSION = 2        # bump when the fill's method changes (a DSM filled by another version is made again)
 DIRECT_MAX = 60_000       # unknowns solved directly (sparse LU); larger gaps go through a coarser grid first
+OBJECT_M = 2.0            # measured cells this far above a gap's border plane stand on the ground (trees, roofs)
 SKIRT_M = 3.0             # how far from a crown or roof on a gap's border its draped skirt is left out of the fill
 SMALL_GAP = 64            # cells: gaps up to this size are filled together, without the border's plane
 
@@ -154,7 +155,7 @@ def laplace_fill(height: np.ndarray, unknown: np.ndarray, skirt_cells: int = 0) 
         if islands.any():
             off |= _standing_islands(sub_h - trend, islands)
         if skirt_cells > 0:               # crowns and roofs in the box, whose skirts may line the gap
-            standing = off | (sub_k & (sub_h - trend > 2.0))
+            standing = off | (sub_k & (sub_h - trend > OBJECT_M))
             if standing.any():
                 off |= _skirts(sub_h - trend, sub_k, standing, skirt_cells) & ring
         resid = np.where(sub_k, sub_h - trend, np.nan)
@@ -166,7 +167,7 @@ def laplace_fill(height: np.ndarray, unknown: np.ndarray, skirt_cells: int = 0) 
     return h
 
 
-def _standing_islands(above: np.ndarray, islands: np.ndarray, object_m: float = 2.0) -> np.ndarray:
+def _standing_islands(above: np.ndarray, islands: np.ndarray, object_m: float = OBJECT_M) -> np.ndarray:
     """The islands (8-connected groups of measured cells enclosed by a gap) that stand on the ground rather
     than being it: any cell more than ``object_m`` above the gap's border plane (``above``: height minus
     that plane). A tree in a plain field is such an island, crown and skirt together (the surface drapes
@@ -205,7 +206,7 @@ def _grow4(m: np.ndarray) -> np.ndarray:
 
 
 def _border_plane(h: np.ndarray, ring: np.ndarray, max_slope: float = 1.0,
-                  object_m: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+                  object_m: float = OBJECT_M) -> tuple[np.ndarray, np.ndarray]:
     """A plane (per cell of ``h``'s box) fitted robustly to ``h`` on the ``ring`` cells (the border's
     majority: a few trees on a field's border do not lift it, a forest's canopy is the canopy; a
     constant, the ring's median, where the ring is too thin to fix a slope or the plane is steeper
