@@ -129,3 +129,60 @@ def test_one_pixel_of_the_features_in_the_photo_s_pixels(tmp_path):
     assert one.field_factor < 1.0
     for n, g in one.ground.items():
         assert np.allclose(shrunk.ground[n], 4.0 * g)
+
+
+def test_k2_of_centres_against_their_positions_measures_the_block_not_the_positions_stated_noise():
+    """k^2 (issue 55): the residuals of a block's centres against their photos' positions after the
+    best similarity, over the variance the block's covariance predicts for them. Positions off by
+    sigma per axis where the block predicts that sigma read k^2 = 1; where the positions state that
+    sigma as their accuracy, the residuals are theirs and k^2 reads 0 (nothing left for the block)."""
+    from gtkit.sfm.register.real_photo_terms import position_misfit
+
+    rng = np.random.default_rng(3)
+    n, sig, s = 400, 0.01, 2.0
+    C = rng.uniform(-50, 50, (n, 3))
+    q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    R = q * np.sign(np.linalg.det(q))
+    G = s * C @ R.T + [500.0, 300.0, 20.0] + rng.normal(0, sig, (n, 3))
+    pred = np.full(n, 3 * sig ** 2 / s ** 2)          # the block's units: G's metres / s
+    k2, scatter, share = position_misfit(C, G, pred)
+    assert k2 == pytest.approx(1.0, abs=0.1) and scatter == pytest.approx(1.54 * sig, rel=0.1) and share == 0.0
+    k2, _, share = position_misfit(C, G, pred, np.full(n, sig))
+    assert abs(k2) < 0.1 and share == pytest.approx(1.0, abs=0.1)
+    k2, _, _ = position_misfit(C, G, pred / 4.0)      # a block claiming half its true sigma
+    assert k2 == pytest.approx(4.0, rel=0.1)
+
+
+def test_k2_from_few_photos_is_taken_at_its_upper_bound_and_the_pixel_no_finer_than_the_default():
+    from gtkit.sfm.register.real_photo_terms import SIGMA_MIN_FEATURE_SIDE, k2_upper, sigma_side
+
+    assert k2_upper(1.0, 5) > k2_upper(1.0, 7) > k2_upper(1.0, 30) > 1.0      # wide on few photos
+    assert k2_upper(1.0, 5) == pytest.approx(1.91, abs=0.05) and k2_upper(1.0, 3000) < 1.03
+    assert k2_upper(2.0, 7) == pytest.approx(2.0 * k2_upper(1.0, 7))
+    assert SIGMA_MIN_FEATURE_SIDE == 1600
+    assert sigma_side(3200) == 1600 and sigma_side(800) == 800 and sigma_side(None) is None
+
+
+def test_the_reference_term_takes_k2_only_where_the_positions_can_test_the_block(tmp_path):
+    """The 9-photo block with 1-px keypoint noise against its photos' true centres: k^2 measured and
+    applied (its upper bound, >= 1); the same centres with 1 m noise (GPS-like: too coarse to test a
+    block's shape), or stating an accuracy that accounts for the residuals: not applied, with the
+    reason, and the term as without positions."""
+    d = tmp_path / "model"
+    d.mkdir()
+    rec = _block(lambda uv, rng: rng.normal(0, 1.0, uv.shape))
+    rec.write(str(d))
+    true = {im.name: np.asarray(im.projection_center(), float) for im in rec.images.values()}
+    plain = reference_shape(d)
+    exact = reference_shape(d, positions=true)
+    assert exact.k2_applied and exact.k2 is not None and exact.k2_n == 9 and exact.k2_factor >= 1.0
+    for n, g in exact.ground.items():
+        assert np.trace(g) == pytest.approx(exact.k2_factor * np.trace(plain.ground[n]), rel=1e-6)
+    rng = np.random.default_rng(0)
+    gps = reference_shape(d, positions={n: c + rng.normal(0, 1.0, 3) for n, c in true.items()})
+    assert not gps.k2_applied and "scatter" in gps.k2_reason and gps.k2_factor == 1.0
+    stated = reference_shape(d, positions={n: c + rng.normal(0, 0.1, 3) for n, c in true.items()},
+                             accuracy={n: 0.1 for n in true})
+    assert not stated.k2_applied and "stated accuracy" in stated.k2_reason
+    for n, g in gps.ground.items():
+        assert np.trace(g) == pytest.approx(np.trace(plain.ground[n]), rel=1e-6)

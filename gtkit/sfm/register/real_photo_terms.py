@@ -49,6 +49,7 @@ import pycolmap
 
 from ...pose import Pose, skew
 from ...project import read_stage_record
+from ..database import FeatureSettings
 
 log = logging.getLogger(__package__)
 
@@ -73,6 +74,70 @@ class ReferenceShape:
     field_factor: float | None = None      # its residual field (:func:`residual_variance_factor`), applied where > 1
     n_photos: int = 0
     seconds: float = 0.0
+    # the block's centres against its photos' positions (:func:`position_misfit`): k^2 (the residuals'
+    # squared sum, less what the positions' stated accuracy accounts for, over the predicted centre
+    # variances), its upper bound at 84 % (:func:`k2_upper`: 5-30 photos measure it loosely), the
+    # positions' robust scatter (median |r|, m) and the photos it is measured on; where ``k2_applied``
+    # the block's term (and a query sequence's own BA term, features at the same size) is multiplied by
+    # ``k2_factor``; where not, the features' pixel is taken no finer than the default's (:func:`sigma_side`)
+    k2: float | None = None
+    k2_factor: float = 1.0
+    k2_scatter_m: float | None = None
+    k2_n: int = 0
+    k2_applied: bool = False
+    k2_reason: str = ""
+
+
+# k^2 from the positions scales the reference term only where they can test the block's shape: fewer than
+# K2_MAX_PHOTOS of them (with more, a fit |r|^2 = a pred + b would separate the positions' noise from the
+# block's shape: not done), scattering under K2_MAX_SCATTER_M after the similarity (GPS: Brighton 0.54 m,
+# gets none), and their stated accuracy accounting for under half of the residuals
+K2_MAX_SCATTER_M = 0.3
+K2_MIN_PHOTOS = 4
+K2_MAX_PHOTOS = 30
+K2_CONFIDENCE = 0.84
+# the feature size the sigma's pixel is never taken finer than, where k^2 cannot check it: the default's
+# (on the real-truth sets at 3200 px the BA's covariance at 1 px was 2-3x too small in sigma, k^2 5-8;
+# at 1600 px the factor (3072 / 1600)^2 = 3.69 covered it: docs/benchmarks.md, stop 61)
+SIGMA_MIN_FEATURE_SIDE = FeatureSettings().max_image_size
+
+
+def sigma_side(feature_side: int | None) -> int | None:
+    """The feature size a covariance's pixel is taken at where k^2 does not check it: the size the
+    features were found at, but no finer than the default's (:data:`SIGMA_MIN_FEATURE_SIDE`)."""
+    return min(feature_side, SIGMA_MIN_FEATURE_SIDE) if feature_side else feature_side
+
+
+def position_misfit(C: np.ndarray, G: np.ndarray, pred: np.ndarray, acc: np.ndarray | None = None
+                    ) -> tuple[float | None, float, float]:
+    """``C`` (N x 3) the block's centres, ``G`` their photos' positions, ``pred`` each centre's predicted
+    variance (trace, the block's units, in its similarity datum), ``acc`` each position's stated
+    accuracy (m per axis, 0 where none): (k^2, median |r| in m, the share of sum |r|^2 the stated
+    accuracy accounts for), r = G minus the best similarity of C onto G;
+    k^2 = (sum |r|^2 - (1 - 7 / 3N) sum 3 acc^2) / (s^2 sum pred), None where pred sums to 0."""
+    mc, mg = C.mean(0), G.mean(0)
+    A, B = C - mc, G - mg
+    U, S, Vt = np.linalg.svd(B.T @ A)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / max(np.sum(A ** 2), 1e-300))
+    r = G - (s * (R @ A.T).T + mg)
+    rr = np.sum(r ** 2, 1)
+    n = len(C)
+    noise = (1.0 - 7.0 / (3 * n)) * 3.0 * float(np.sum(np.asarray(acc, np.float64) ** 2)) if acc is not None else 0.0
+    den = s ** 2 * float(np.sum(pred))
+    share = noise / max(float(rr.sum()), 1e-300)
+    return (float((rr.sum() - noise) / den) if den > 0 else None), float(np.median(np.sqrt(rr))), share
+
+
+def k2_upper(k2: float, n: int, confidence: float = K2_CONFIDENCE) -> float:
+    """The upper bound of k^2 at ``confidence`` measured on ``n`` centres (3N - 7 degrees of freedom
+    after the similarity): a chi-square's spread, wide on few photos (5 photos: x 1.8, 7: x 1.6)."""
+    from scipy.stats import chi2
+
+    dof = max(3 * n - 7, 1)
+    return float(k2 * dof / chi2.ppf(1.0 - confidence, dof))
 
 
 def feature_noise_px(cam, feature_side: int | None) -> float:
@@ -204,12 +269,17 @@ def refined_intrinsics(model_dir: Path) -> dict[int, list[str]]:
 
 
 def reference_shape(ref_model: Path, names: set[str] | None = None, settings: SigmaSettings = SigmaSettings(),
-                    feature_side: int | None = None) -> ReferenceShape | None:
+                    feature_side: int | None = None, positions: dict[str, np.ndarray] | None = None,
+                    accuracy: dict[str, float] | None = None) -> ReferenceShape | None:
     """The reference block's own uncertainty, per photo (the part its ground points carry, in the
     block's similarity datum; see the module's docstring), from the SfM model in ``ref_model`` with
     the intrinsics free that the SfM refined (``block.json``: their uncertainty is the lens model's).
     ``names``: the photos the queries tie to (a block over ``settings.max_photos`` is cut to them and
-    their neighbours); ``feature_side``: the long side its features were found at (:func:`feature_noise_px`).
+    their neighbours); ``feature_side``: the long side its features were found at (:func:`feature_noise_px`);
+    ``positions``: the photos' positions (project frame, m), ``accuracy`` their stated accuracy (m):
+    the upper bound of k^2 of the centres against them (:func:`position_misfit`, :func:`k2_upper`)
+    scales every ground part where they can test the block (see :data:`K2_MAX_SCATTER_M`); elsewhere
+    the features' pixel is taken at :func:`sigma_side`.
     None where the block's covariance cannot be computed."""
     t0 = time.time()
     rec = pycolmap.Reconstruction(str(ref_model))
@@ -254,9 +324,36 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
     vf = _variance_factor(rec, n) if n == n_all == rec.num_reg_images() else None
     field_factor = residual_variance_factor(rec, ids, settings) if settings.residual_field else None
     ground = {}
+    scales = [variance_scale(feature_noise_px(rec.cameras[rec.images[i].camera_id], feature_side), field_factor)
+              for i in ids]
+    k2 = k2_scatter = None
+    share = 0.0
+    keep = [a for a, i in enumerate(ids) if positions and rec.images[i].name in positions]
+    if len(keep) >= K2_MIN_PHOTOS:
+        C = np.array([poses[a].center for a in keep])
+        G = np.array([np.asarray(positions[rec.images[ids[a]].name], np.float64) for a in keep])
+        acc = np.array([float((accuracy or {}).get(rec.images[ids[a]].name) or 0.0) for a in keep])
+        pred = np.array([np.trace(Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3]) * scales[a] for a in keep])
+        if np.all(np.isfinite(G)) and np.all(np.isfinite(pred)):
+            k2, k2_scatter, share = position_misfit(C, G, pred, acc)
+    if k2 is None:
+        why = f"{len(keep)} photos with positions (needs {K2_MIN_PHOTOS})"
+    elif len(keep) >= K2_MAX_PHOTOS:
+        why = f"{len(keep)} photos with positions (a fit over {K2_MAX_PHOTOS} or more is not made)"
+    elif k2_scatter >= K2_MAX_SCATTER_M:
+        why = f"positions scatter {k2_scatter:.2f} m after the similarity (too coarse to test the block)"
+    elif share >= 0.5:
+        why = f"the positions' stated accuracy accounts for {100 * share:.0f} % of their residuals"
+    else:
+        why = ""
+    k2_applied = not why
+    k2_factor = max(1.0, k2_upper(k2, len(keep))) if k2_applied else 1.0
+    if not k2_applied:   # the features' pixel no finer than the default's (sigma_side)
+        scales = [variance_scale(feature_noise_px(rec.cameras[rec.images[i].camera_id], sigma_side(feature_side)),
+                                 field_factor) for i in ids]
     for a, i in enumerate(ids):
         im = rec.images[i]
-        scale = variance_scale(feature_noise_px(rec.cameras[im.camera_id], feature_side), field_factor)
+        scale = scales[a] * k2_factor
         own = _own_center_cov(rec, im, poses[a])
         g = Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3] - (own if own is not None and np.all(np.isfinite(own)) else 0.0)
         if not np.all(np.isfinite(g)):
@@ -269,7 +366,12 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
         ground[im.name] = scale * (V * np.clip(w, 0.0, None)) @ V.T
     if not ground:
         return None
-    out = ReferenceShape(ground, vf, field_factor, n, time.time() - t0)
+    out = ReferenceShape(ground, vf, field_factor, n, time.time() - t0, k2, k2_factor, k2_scatter, len(keep),
+                         k2_applied, why)
+    log.info("reference block against its %d positions: k^2 %s, scatter %s m, %s", len(keep), _f(k2),
+             "-" if k2_scatter is None else f"{k2_scatter:.3f}",
+             f"its term x {k2_factor:.2f} (k^2's upper bound at {100 * K2_CONFIDENCE:.0f} %)" if k2_applied
+             else f"not applied: {why}")
     log.info("reference block's own uncertainty: %d photos, residual field %s, variance factor %s, median %.3f m, "
              "in %.1f s", n, _f(field_factor), _f(vf),
              float(np.median([np.sqrt(np.trace(g)) for g in ground.values()])), out.seconds)

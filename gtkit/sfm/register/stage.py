@@ -11,6 +11,7 @@ from pathlib import Path
 
 from ...errors import GtkitError
 from ...io.tiepoints import read_tiepoints
+from ...photo_positions import positions_and_accuracy
 from ...project import Project, file_fingerprint, stage_done, start_stage_clock
 from .. import quiet_colmap
 from ..blocks import QUERIES_STAGE, REFERENCE_STAGE
@@ -196,11 +197,17 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     swung = set(blocks) if settings.systematic_swing_where == "all" else set(smooth_only)
     P = project.paths
     # the size each block found its features at; a sequence whose SfM made no model has no record:
-    # its features came from the same [sfm] section as the reference block's
+    # its features were found at the reference block's size (blocks.block_feature_settings)
     sides = {"reference": feature_side_of(P.stage(REFERENCE_STAGE))}
     sides.update({q: feature_side_of(P.stage(QUERIES_STAGE) / q) or sides["reference"] for q in blocks})
+    try:   # the reference photos' own positions: the block's misfit to them scales its term (reference_shape)
+        ref_positions, ref_accuracy = positions_and_accuracy(project, [im.name for im in ref.rec.images.values()])
+    except GtkitError as e:
+        log.warning("reference photos' positions unreadable (%s): the reference term is not checked against them", e)
+        ref_positions = ref_accuracy = None
     poses, cams, covs, per_image, floors = query_poses(j, cov, settings.systematic_swing_px, swung, placed.resected,
-                                                       P.stage(REFERENCE_STAGE) / "model", settings.sigma, sides)
+                                                       P.stage(REFERENCE_STAGE) / "model", settings.sigma, sides,
+                                                       ref_positions, ref_accuracy)
     tie_rows, bad = tie_table(j, clicks, placed.statuses, dropped, placed.report, prefixes)
     for seq in blocks:
         placed.report[seq]["n_tiepoints_final_ba"] = sum(1 for r in tie_rows.values()

@@ -10,7 +10,7 @@ from ...camera import Camera
 from ...pose import Pose, skew
 from ..crossmatch import AUTO_PREFIX
 from .joint import Joint, _median_depth
-from .real_photo_terms import (SigmaSettings, feature_noise_px, reference_shape, reference_term,
+from .real_photo_terms import (SigmaSettings, feature_noise_px, reference_shape, sigma_side, reference_term,
                                residual_variance_factor, variance_scale)
 
 
@@ -60,12 +60,14 @@ def _with_reference(pose: Pose, c_ref: np.ndarray) -> Pose:
 
 
 def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict, ref_model=None,
-                sigma: SigmaSettings = SigmaSettings(), feature_side: dict[str, int | None] | None = None):
+                sigma: SigmaSettings = SigmaSettings(), feature_side: dict[str, int | None] | None = None,
+                ref_positions: dict | None = None, ref_accuracy: dict | None = None):
     """Each registered query photo's pose (with its covariance: the BA's, scaled by its sequence's
     residual field, plus the systematic swing on the sequences in ``swung`` and the reference block's
     own uncertainty from its SfM model folder ``ref_model``), camera and record (``resected``: the
     photos left out by their sequence's SfM; ``feature_side``: the long side each block's features were
-    found at, ``"reference"`` and each sequence, :func:`feature_noise_px`). Returns (poses, cameras, covariances, records, floors:
+    found at, ``"reference"`` and each sequence, :func:`feature_noise_px`; ``ref_positions``,
+    ``ref_accuracy``: the reference photos' positions and their stated accuracy, :func:`reference_shape`). Returns (poses, cameras, covariances, records, floors:
     photo -> the centre variance clicks do not lower: the terms added to the BA's, so that the
     guidance's sigma is the stated one)."""
     rec = j.rec
@@ -80,7 +82,8 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
             cnt[n] = cnt.get(n, 0) + 1
     factors = _sequence_factors(j, qids, sigma) if sigma.residual_field else {}
     side = (feature_side or {}) if sigma.feature_size else {}
-    shape = (reference_shape(ref_model, {rec.images[i].name for i in j.ref_ids}, sigma, side.get("reference"))
+    shape = (reference_shape(ref_model, {rec.images[i].name for i in j.ref_ids}, sigma, side.get("reference"),
+                             ref_positions, ref_accuracy)
              if sigma.reference_shape and ref_model is not None and qids else None)
     floors: dict[str, float] = {}   # photo -> the systematic part's centre variance (clicks do not lower it)
     for iid in qids:
@@ -89,9 +92,15 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
         pose = _ba_pose(rec, cov, iid)
         ok = pose.covariance is not None
         sigma_ba = _position_sigma(pose)
-        noise_px = feature_noise_px(rec.cameras[im.camera_id], side.get(seq))
+        k2 = shape is not None and shape.k2_applied and side.get(seq) and side.get(seq) == side.get("reference")
+        # features found at the reference block's size: its measured k^2 holds for this BA's covariance
+        # too; elsewhere the features' pixel is taken no finer than the default's (sigma_side)
+        noise_px = feature_noise_px(rec.cameras[im.camera_id], side.get(seq) if k2 else sigma_side(side.get(seq)))
         terms: dict = {"ba_m": sigma_ba, "residual_factor": factors.get(seq), "feature_px": noise_px}
         scale = variance_scale(noise_px, factors.get(seq))
+        if k2:
+            scale *= shape.k2_factor
+            terms["k2_factor"] = shape.k2_factor
         if ok and scale > 1.0:
             # the scaled part is kept apart as systematic too (the guidance's clicks lower the BA's alone)
             floors[im.name] = (scale - 1.0) * sigma_ba ** 2
@@ -107,6 +116,9 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
         if c_ref is not None:
             terms["reference_m"] = float(np.sqrt(np.trace(c_ref)))
             terms["reference_residual_factor"] = shape.field_factor
+            terms["reference_k2"] = shape.k2
+            terms["reference_k2_factor"] = shape.k2_factor if shape.k2_applied else None
+            terms["reference_k2_not_applied"] = shape.k2_reason or None
             floors[im.name] = floors.get(im.name, 0.0) + float(np.trace(c_ref))
             pose = _with_reference(pose, c_ref)
         poses[im.name] = pose
