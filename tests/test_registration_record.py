@@ -113,3 +113,16 @@ def test_an_unexpected_failure_of_a_command_is_one_line(project, monkeypatch, ca
     assert rc == 2 and len(err) == 1, err
     assert err[0].startswith("gtkit: error: report failed unexpectedly (KeyError: 'no such key'); the traceback is in ")
     assert (project.paths.work / "errors" / "report.txt").is_file()
+
+
+def test_a_damaged_stage_record_is_a_one_line_error_naming_it_not_a_stage_not_run(project):
+    """The GT report reads the reference block's record; a truncated one (a disk filled mid-write by
+    another tool) is named with what to do, never read as "the reference SfM has not run"."""
+    from gtkit.errors import GtkitError
+
+    blk = project.paths.stage("sfm_reference") / "block.json"
+    blk.parent.mkdir(parents=True, exist_ok=True)
+    blk.write_text('{"n_registered": 12, "intrinsics": {')
+    with pytest.raises(GtkitError) as e:
+        report.run(project)
+    assert str(blk) in str(e.value) and "unreadable record" in str(e.value) and "\n" not in str(e.value)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import GtkitError
 from ..io.atomic import write_json, write_text
 from ..io.poses import read_poses
 from ..project import Project
@@ -19,7 +20,14 @@ from . import registration_record as record
 
 
 def _load(p: Path):
-    return json.loads(p.read_text()) if p.is_file() else None
+    """A stage's record, None where the stage has not run; a record that cannot be read is a one-line
+    error naming it (the report never reads a damaged record as "not run")."""
+    if not p.is_file():
+        return None
+    try:
+        return json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise GtkitError(f"unreadable record ({e}); re-run its stage with --force", p) from None
 
 
 def _svg_bars(title: str, labels: list[str], values: list[float], unit: str, limit: float | None = None) -> str:
