@@ -94,7 +94,10 @@ def load_block(paths) -> Block:
         except (OSError, json.JSONDecodeError):
             geo = {}
         q = geo.get("gps_quality") or {}
-        if q.get("absolute_accuracy_h_m"):
+        claim = geo.get("claimed_accuracy") or {}   # the one claim every report reads (sfm/accuracy_claim.py)
+        if claim.get("h_m"):
+            sh, sv = float(claim["h_m"]), float(claim.get("v_m") or claim["h_m"])
+        elif q.get("absolute_accuracy_h_m"):   # a block georegistered before the claim was recorded
             sh, sv = float(q["absolute_accuracy_h_m"]), float(q.get("absolute_accuracy_v_m") or q["absolute_accuracy_h_m"])
         elif geo.get("gcp_rmse_m"):
             sh = sv = float(geo["gcp_rmse_m"])
