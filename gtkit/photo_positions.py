@@ -23,6 +23,7 @@ class PhotoPosition:
     xyz: np.ndarray                  # camera centre, project frame (metres)
     source: str                      # "geo.txt" or "exif"
     accuracy_m: float | None = None  # geo.txt's stated accuracy (the larger of horizontal and vertical)
+    accuracy_hv: tuple[float, float] | None = None   # ... and both: (horizontal, vertical), metres
 
 
 class PhotoPositions:
@@ -52,8 +53,11 @@ class PhotoPositions:
         g = self.geo.get(name) or self.geo.get(Path(name).name)
         if g is None or not np.all(np.isfinite(g.xyz)):
             return None
-        acc = float(max(g.accuracy)) if g.accuracy and max(g.accuracy) > 0 else None
-        return PhotoPosition(g.xyz, "geo.txt", acc)
+        if g.accuracy and max(g.accuracy) > 0:
+            h, v = (float(a) for a in g.accuracy)
+            h, v = h if h > 0 else v, v if v > 0 else h     # one column stated: both
+            return PhotoPosition(g.xyz, "geo.txt", max(h, v), (h, v))
+        return PhotoPosition(g.xyz, "geo.txt")
 
     def get(self, name: str, meta: PhotoMeta | None = None) -> PhotoPosition | None:
         """The photo's position (``meta``: its metadata where already read); None without one. An
@@ -96,12 +100,12 @@ class PhotoPositions:
         return None if p is None else p.xyz
 
 
-def positions_and_accuracy(project: Project, names: list[str], metas: dict | None = None
-                           ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+def positions_and_accuracy(project: Project, names: list[str], metas: dict | None = None, per_axis: bool = False
+                           ) -> tuple[dict[str, np.ndarray], dict]:
     """Camera positions (geo.txt first, else EXIF GPS + altitude) and, where geo.txt states one, each
-    position's accuracy (metres, the larger of horizontal and vertical). ``metas``: the photos'
-    metadata already read; a photo missing there is read here (unreadable: GtkitError). The same as
-    ``gtkit.sfm.blocks.gps_positions_and_accuracy``."""
+    position's accuracy (metres, the larger of horizontal and vertical; ``per_axis``: both, as
+    (horizontal, vertical)). ``metas``: the photos' metadata already read; a photo missing there is read
+    here (unreadable: GtkitError). The same as ``gtkit.sfm.blocks.gps_positions_and_accuracy``."""
     reader = PhotoPositions(project)
     out, acc = {}, {}
     for n in names:
@@ -110,5 +114,5 @@ def positions_and_accuracy(project: Project, names: list[str], metas: dict | Non
             continue
         out[n] = p.xyz
         if p.accuracy_m is not None:
-            acc[n] = p.accuracy_m
+            acc[n] = p.accuracy_hv if per_axis else p.accuracy_m
     return out, acc

@@ -44,6 +44,7 @@ def test_geo_txt_first_else_exif(tmp_path):
     pos, acc = positions_and_accuracy(proj, [A, B])
     pos_b, acc_b = gps_positions_and_accuracy(proj, [A, B])    # the SfM's reader, which this one replaces
     assert acc == acc_b == {A: 3.0}
+    assert a.accuracy_hv == (2.0, 3.0) and positions_and_accuracy(proj, [A, B], per_axis=True)[1] == {A: (2.0, 3.0)}
     for n in (A, B):
         np.testing.assert_array_equal(pos[n], pos_b[n])
 

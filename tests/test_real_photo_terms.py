@@ -149,6 +149,9 @@ def test_k2_of_centres_against_their_positions_measures_the_block_not_the_positi
     assert k2 == pytest.approx(1.0, abs=0.1) and scatter == pytest.approx(1.54 * sig, rel=0.1) and share == 0.0
     k2, _, share = position_misfit(C, G, pred, np.full(n, sig))
     assert abs(k2) < 0.1 and share == pytest.approx(1.0, abs=0.1)
+    # horizontal and vertical stated apart: (sig, sig) is the same; a vertical 2 x sig accounts for twice
+    assert position_misfit(C, G, pred, np.full((n, 2), sig))[2] == pytest.approx(share)
+    assert position_misfit(C, G, pred, np.tile([sig, 2 * sig], (n, 1)))[2] == pytest.approx(2.0 * share)
     k2, _, _ = position_misfit(C, G, pred / 4.0)      # a block claiming half its true sigma
     assert k2 == pytest.approx(4.0, rel=0.1)
 

@@ -112,9 +112,10 @@ def position_misfit(C: np.ndarray, G: np.ndarray, pred: np.ndarray, acc: np.ndar
                     ) -> tuple[float | None, float, float]:
     """``C`` (N x 3) the block's centres, ``G`` their photos' positions, ``pred`` each centre's predicted
     variance (trace, the block's units, in its similarity datum), ``acc`` each position's stated
-    accuracy (m per axis, 0 where none): (k^2, median |r| in m, the share of sum |r|^2 the stated
-    accuracy accounts for), r = G minus the best similarity of C onto G;
-    k^2 = (sum |r|^2 - (1 - 7 / 3N) sum 3 acc^2) / (s^2 sum pred), None where pred sums to 0."""
+    accuracy (m, 0 where none: one sigma per axis, N values, or N x 2 horizontal and vertical): (k^2,
+    median |r| in m, the share of sum |r|^2 the stated accuracy accounts for), r = G minus the best
+    similarity of C onto G; k^2 = (sum |r|^2 - (1 - 7 / 3N) sum (2 h^2 + v^2)) / (s^2 sum pred), None
+    where pred sums to 0."""
     mc, mg = C.mean(0), G.mean(0)
     A, B = C - mc, G - mg
     U, S, Vt = np.linalg.svd(B.T @ A)
@@ -125,7 +126,11 @@ def position_misfit(C: np.ndarray, G: np.ndarray, pred: np.ndarray, acc: np.ndar
     r = G - (s * (R @ A.T).T + mg)
     rr = np.sum(r ** 2, 1)
     n = len(C)
-    noise = (1.0 - 7.0 / (3 * n)) * 3.0 * float(np.sum(np.asarray(acc, np.float64) ** 2)) if acc is not None else 0.0
+    noise = 0.0
+    if acc is not None:
+        a = np.asarray(acc, np.float64).reshape(n, -1)
+        hv = a[:, :2] if a.shape[1] >= 2 else np.repeat(a[:, :1], 2, axis=1)
+        noise = (1.0 - 7.0 / (3 * n)) * float(np.sum(2.0 * hv[:, 0] ** 2 + hv[:, 1] ** 2))
     den = s ** 2 * float(np.sum(pred))
     share = noise / max(float(rr.sum()), 1e-300)
     return (float((rr.sum() - noise) / den) if den > 0 else None), float(np.median(np.sqrt(rr))), share
@@ -276,7 +281,8 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
     the intrinsics free that the SfM refined (``block.json``: their uncertainty is the lens model's).
     ``names``: the photos the queries tie to (a block over ``settings.max_photos`` is cut to them and
     their neighbours); ``feature_side``: the long side its features were found at (:func:`feature_noise_px`);
-    ``positions``: the photos' positions (project frame, m), ``accuracy`` their stated accuracy (m):
+    ``positions``: the photos' positions (project frame, m), ``accuracy`` their stated accuracy (m, one
+    value or horizontal and vertical):
     the upper bound of k^2 of the centres against them (:func:`position_misfit`, :func:`k2_upper`)
     scales every ground part where they can test the block (see :data:`K2_MAX_SCATTER_M`); elsewhere
     the features' pixel is taken at :func:`sigma_side`.
@@ -332,7 +338,8 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
     if len(keep) >= K2_MIN_PHOTOS:
         C = np.array([poses[a].center for a in keep])
         G = np.array([np.asarray(positions[rec.images[ids[a]].name], np.float64) for a in keep])
-        acc = np.array([float((accuracy or {}).get(rec.images[ids[a]].name) or 0.0) for a in keep])
+        acc = np.array([np.broadcast_to(np.asarray((accuracy or {}).get(rec.images[ids[a]].name) or 0.0, float), 2)
+                        for a in keep])
         pred = np.array([np.trace(Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3]) * scales[a] for a in keep])
         if np.all(np.isfinite(G)) and np.all(np.isfinite(pred)):
             k2, k2_scatter, share = position_misfit(C, G, pred, acc)

@@ -201,7 +201,8 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     sides = {"reference": feature_side_of(P.stage(REFERENCE_STAGE))}
     sides.update({q: feature_side_of(P.stage(QUERIES_STAGE) / q) or sides["reference"] for q in blocks})
     try:   # the reference photos' own positions: the block's misfit to them scales its term (reference_shape)
-        ref_positions, ref_accuracy = positions_and_accuracy(project, [im.name for im in ref.rec.images.values()])
+        ref_positions, ref_accuracy = positions_and_accuracy(project, [im.name for im in ref.rec.images.values()],
+                                                             per_axis=True)
     except GtkitError as e:
         log.warning("reference photos' positions unreadable (%s): the reference term is not checked against them", e)
         ref_positions = ref_accuracy = None
