@@ -49,6 +49,7 @@ import pycolmap
 
 from ...pose import Pose, skew
 from ...project import read_stage_record
+from ..accuracy_claim import SURVEY_GRADE_M
 from ..database import FeatureSettings
 
 log = logging.getLogger(__package__)
@@ -92,7 +93,7 @@ class ReferenceShape:
 # K2_MAX_PHOTOS of them (with more, a fit |r|^2 = a pred + b would separate the positions' noise from the
 # block's shape: not done), scattering under K2_MAX_SCATTER_M after the similarity (GPS: Brighton 0.54 m,
 # gets none), and their stated accuracy accounting for under half of the residuals
-K2_MAX_SCATTER_M = 0.3
+K2_MAX_SCATTER_M = SURVEY_GRADE_M   # positions scattering more are GPS-grade (the accuracy claim's own line)
 K2_MIN_PHOTOS = 4
 K2_MAX_PHOTOS = 30
 K2_CONFIDENCE = 0.84
