@@ -739,13 +739,13 @@ FINE_FEATURES = (3200, 8192)
 
 
 def _photo_long_side(path: Path) -> int | None:
+    """The photo's long side (px) from the one metadata reader; None where it cannot be read (the
+    features' own reader then names the file)."""
     try:
-        from PIL import Image
-
-        with Image.open(path) as im:
-            return max(im.size)
-    except Exception:  # noqa: BLE001 - unreadable here: the features' own reader decides
+        m = read_photo_meta(path, require=())
+    except GtkitError:
         return None
+    return max(m.width, m.height) or None
 
 
 def block_feature_settings(project: Project, names: list[str], settings: SfmSettings,
