@@ -189,3 +189,27 @@ def test_the_reference_term_takes_k2_only_where_the_positions_can_test_the_block
     assert not stated.k2_applied and "stated accuracy" in stated.k2_reason
     for n, g in gps.ground.items():
         assert np.trace(g) == pytest.approx(np.trace(plain.ground[n]), rel=1e-6)
+
+
+def test_a_large_reference_block_reads_no_positions(tmp_path, monkeypatch):
+    """The positions are read through ``positions_of`` only for a block k^2 can test (fewer than
+    K2_MAX_PHOTOS photos): the same k^2 as given directly; over it, never read, and the reason said."""
+    from gtkit.sfm.register import real_photo_terms
+
+    d = tmp_path / "model"
+    d.mkdir()
+    rec = _block(lambda uv, rng: rng.normal(0, 1.0, uv.shape))
+    rec.write(str(d))
+    true = {im.name: np.asarray(im.projection_center(), float) for im in rec.images.values()}
+    asked = []
+
+    def positions_of(names):
+        asked.append(sorted(names))
+        return {n: true[n] for n in names}, {}
+
+    lazy = reference_shape(d, positions_of=positions_of)
+    assert asked == [sorted(true)] and lazy.k2 == pytest.approx(reference_shape(d, positions=true).k2)
+    monkeypatch.setattr(real_photo_terms, "K2_MAX_PHOTOS", 9)
+    asked.clear()
+    big = reference_shape(d, positions_of=positions_of)
+    assert asked == [] and not big.k2_applied and big.k2_reason.startswith("9 photos in the block")

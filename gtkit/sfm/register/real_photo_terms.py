@@ -276,7 +276,7 @@ def refined_intrinsics(model_dir: Path) -> dict[int, list[str]]:
 
 def reference_shape(ref_model: Path, names: set[str] | None = None, settings: SigmaSettings = SigmaSettings(),
                     feature_side: int | None = None, positions: dict[str, np.ndarray] | None = None,
-                    accuracy: dict[str, float] | None = None) -> ReferenceShape | None:
+                    accuracy: dict[str, float] | None = None, positions_of=None) -> ReferenceShape | None:
     """The reference block's own uncertainty, per photo (the part its ground points carry, in the
     block's similarity datum; see the module's docstring), from the SfM model in ``ref_model`` with
     the intrinsics free that the SfM refined (``block.json``: their uncertainty is the lens model's).
@@ -286,7 +286,9 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
     value or horizontal and vertical):
     the upper bound of k^2 of the centres against them (:func:`position_misfit`, :func:`k2_upper`)
     scales every ground part where they can test the block (see :data:`K2_MAX_SCATTER_M`); elsewhere
-    the features' pixel is taken at :func:`sigma_side`.
+    the features' pixel is taken at :func:`sigma_side`. ``positions_of``: instead of ``positions`` and
+    ``accuracy``, a function of the photos' names returning both, called only for a block k^2 can test
+    (fewer than :data:`K2_MAX_PHOTOS` photos): a large block's positions are never read here.
     None where the block's covariance cannot be computed."""
     t0 = time.time()
     rec = pycolmap.Reconstruction(str(ref_model))
@@ -335,6 +337,8 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
               for i in ids]
     k2 = k2_scatter = None
     share = 0.0
+    if positions is None and positions_of is not None and K2_MIN_PHOTOS <= n < K2_MAX_PHOTOS:
+        positions, accuracy = positions_of([rec.images[i].name for i in ids])
     keep = [a for a, i in enumerate(ids) if positions and rec.images[i].name in positions]
     if len(keep) >= K2_MIN_PHOTOS:
         C = np.array([poses[a].center for a in keep])
@@ -344,7 +348,9 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
         pred = np.array([np.trace(Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3]) * scales[a] for a in keep])
         if np.all(np.isfinite(G)) and np.all(np.isfinite(pred)):
             k2, k2_scatter, share = position_misfit(C, G, pred, acc)
-    if k2 is None:
+    if k2 is None and n >= K2_MAX_PHOTOS and positions is None:
+        why = f"{n} photos in the block (a fit over {K2_MAX_PHOTOS} or more is not made)"
+    elif k2 is None:
         why = f"{len(keep)} photos with positions (needs {K2_MIN_PHOTOS})"
     elif len(keep) >= K2_MAX_PHOTOS:
         why = f"{len(keep)} photos with positions (a fit over {K2_MAX_PHOTOS} or more is not made)"

@@ -200,15 +200,16 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     # its features were found at the reference block's size (blocks.block_feature_settings)
     sides = {"reference": feature_side_of(P.stage(REFERENCE_STAGE))}
     sides.update({q: feature_side_of(P.stage(QUERIES_STAGE) / q) or sides["reference"] for q in blocks})
-    try:   # the reference photos' own positions: the block's misfit to them scales its term (reference_shape)
-        ref_positions, ref_accuracy = positions_and_accuracy(project, [im.name for im in ref.rec.images.values()],
-                                                             per_axis=True)
-    except GtkitError as e:
-        log.warning("reference photos' positions unreadable (%s): the reference term is not checked against them", e)
-        ref_positions = ref_accuracy = None
+
+    def ref_positions_of(names):   # the reference photos' own positions: the block's misfit to them scales its term
+        try:
+            return positions_and_accuracy(project, names, per_axis=True)
+        except GtkitError as e:
+            log.warning("reference photos' positions unreadable (%s): the reference term is not checked against them", e)
+            return None, None
     poses, cams, covs, per_image, floors = query_poses(j, cov, settings.systematic_swing_px, swung, placed.resected,
                                                        P.stage(REFERENCE_STAGE) / "model", settings.sigma, sides,
-                                                       ref_positions, ref_accuracy)
+                                                       ref_positions_of)
     tie_rows, bad = tie_table(j, clicks, placed.statuses, dropped, placed.report, prefixes)
     for seq in blocks:
         placed.report[seq]["n_tiepoints_final_ba"] = sum(1 for r in tie_rows.values()

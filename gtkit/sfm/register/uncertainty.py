@@ -61,13 +61,13 @@ def _with_reference(pose: Pose, c_ref: np.ndarray) -> Pose:
 
 def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict, ref_model=None,
                 sigma: SigmaSettings = SigmaSettings(), feature_side: dict[str, int | None] | None = None,
-                ref_positions: dict | None = None, ref_accuracy: dict | None = None):
+                ref_positions_of=None):
     """Each registered query photo's pose (with its covariance: the BA's, scaled by its sequence's
     residual field, plus the systematic swing on the sequences in ``swung`` and the reference block's
     own uncertainty from its SfM model folder ``ref_model``), camera and record (``resected``: the
     photos left out by their sequence's SfM; ``feature_side``: the long side each block's features were
-    found at, ``"reference"`` and each sequence, :func:`feature_noise_px`; ``ref_positions``,
-    ``ref_accuracy``: the reference photos' positions and their stated accuracy, :func:`reference_shape`). Returns (poses, cameras, covariances, records, floors:
+    found at, ``"reference"`` and each sequence, :func:`feature_noise_px`; ``ref_positions_of``:
+    the reference photos' names -> their positions and stated accuracy, :func:`reference_shape`). Returns (poses, cameras, covariances, records, floors:
     photo -> the centre variance clicks do not lower: the terms added to the BA's, so that the
     guidance's sigma is the stated one)."""
     rec = j.rec
@@ -83,7 +83,7 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
     factors = _sequence_factors(j, qids, sigma) if sigma.residual_field else {}
     side = (feature_side or {}) if sigma.feature_size else {}
     shape = (reference_shape(ref_model, {rec.images[i].name for i in j.ref_ids}, sigma, side.get("reference"),
-                             ref_positions, ref_accuracy)
+                             positions_of=ref_positions_of)
              if sigma.reference_shape and ref_model is not None and qids else None)
     floors: dict[str, float] = {}   # photo -> the systematic part's centre variance (clicks do not lower it)
     for iid in qids:
