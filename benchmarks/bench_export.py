@@ -10,7 +10,6 @@ texture). Prints one table; times are wall seconds on this machine (noisy, share
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import tempfile
 import time

@@ -231,8 +231,8 @@ def finish(project: Path, results: list[Path], copy: Path, resolution: float, ki
             if est is not None:
                 share, rel = _depth_stats(est, t)
                 rows.setdefault(k, {})[n] = (share, float(np.median(rel)), float(np.percentile(rel, 95)))
-    print(f"\ndepth maps against the true depth (median over photos of each photo's valid share, median and "
-          f"p95 relative error):")
+    print("\ndepth maps against the true depth (median over photos of each photo's valid share, median and "
+          "p95 relative error):")
     print("| depth maps | photos | valid share | median rel. error | p95 rel. error | SGBM on the same photos |")
     print("|---|---|---|---|---|---|")
     for k in ("sgbm", "photometric", "geometric"):

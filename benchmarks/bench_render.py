@@ -53,7 +53,7 @@ def main():
         r.render(cam, Pose.from_dji(45.0 * k, -45, 0, [np.cos(k) * 100, np.sin(k) * 100, 120]), with_rgb=False)
     dt_d = (time.perf_counter() - t0) / args.views
     print("| mesh | triangles | texture | view | first frame (s) | RGB+depth ms/view | views/s | depth-only views/s |")
-    print(f"|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     print(f"| terrain | {r.n_triangles:,} | 4096^2 | {w}x{h} | {t_first:.2f} | {dt * 1000:.0f} | {1 / dt:.1f} | {1 / dt_d:.1f} |")
 
 

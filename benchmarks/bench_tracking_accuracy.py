@@ -87,7 +87,7 @@ def main():
     rows = []
     for name, poses, det, foot in variants:
         t = time.perf_counter()
-        s = track(proj, TrackSettings(poses=poses, detections=str(det), foot_point=foot), force=True)
+        track(proj, TrackSettings(poses=poses, detections=str(det), foot_point=foot), force=True)
         dt = time.perf_counter() - t
         out_csv = P.exports / f"tracks_{name}.csv"
         shutil.copyfile(P.tracks, out_csv)
