@@ -166,6 +166,11 @@ def test_k2_from_few_photos_is_taken_at_its_upper_bound_and_the_pixel_no_finer_t
     assert sigma_side(3200) == 1600 and sigma_side(800) == 800 and sigma_side(None) is None
 
 
+def _given(positions: dict, accuracy: dict | None = None):
+    """``reference_shape``'s ``positions_of`` over fixed positions (and stated accuracy)."""
+    return lambda names: (positions, accuracy)
+
+
 def test_the_reference_term_takes_k2_only_where_the_positions_can_test_the_block(tmp_path):
     """The 9-photo block with 1-px keypoint noise against its photos' true centres: k^2 measured and
     applied (its upper bound, >= 1); the same centres with 1 m noise (GPS-like: too coarse to test a
@@ -177,15 +182,15 @@ def test_the_reference_term_takes_k2_only_where_the_positions_can_test_the_block
     rec.write(str(d))
     true = {im.name: np.asarray(im.projection_center(), float) for im in rec.images.values()}
     plain = reference_shape(d)
-    exact = reference_shape(d, positions=true)
+    exact = reference_shape(d, positions_of=_given(true))
     assert exact.k2_applied and exact.k2 is not None and exact.k2_n == 9 and exact.k2_factor >= 1.0
     for n, g in exact.ground.items():
         assert np.trace(g) == pytest.approx(exact.k2_factor * np.trace(plain.ground[n]), rel=1e-6)
     rng = np.random.default_rng(0)
-    gps = reference_shape(d, positions={n: c + rng.normal(0, 1.0, 3) for n, c in true.items()})
+    gps = reference_shape(d, positions_of=_given({n: c + rng.normal(0, 1.0, 3) for n, c in true.items()}))
     assert not gps.k2_applied and "scatter" in gps.k2_reason and gps.k2_factor == 1.0
-    stated = reference_shape(d, positions={n: c + rng.normal(0, 0.1, 3) for n, c in true.items()},
-                             accuracy={n: 0.1 for n in true})
+    stated = reference_shape(d, positions_of=_given({n: c + rng.normal(0, 0.1, 3) for n, c in true.items()},
+                                                    {n: 0.1 for n in true}))
     assert not stated.k2_applied and "stated accuracy" in stated.k2_reason
     for n, g in gps.ground.items():
         assert np.trace(g) == pytest.approx(np.trace(plain.ground[n]), rel=1e-6)
@@ -208,7 +213,7 @@ def test_a_large_reference_block_reads_no_positions(tmp_path, monkeypatch):
         return {n: true[n] for n in names}, {}
 
     lazy = reference_shape(d, positions_of=positions_of)
-    assert asked == [sorted(true)] and lazy.k2 == pytest.approx(reference_shape(d, positions=true).k2)
+    assert asked == [sorted(true)] and lazy.k2 == pytest.approx(reference_shape(d, positions_of=_given(true)).k2)
     monkeypatch.setattr(real_photo_terms, "K2_MAX_PHOTOS", 9)
     asked.clear()
     big = reference_shape(d, positions_of=positions_of)

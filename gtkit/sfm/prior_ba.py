@@ -122,9 +122,9 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
     # stop once a step changes the cost by less than 1e-7 of itself (COLMAP sets 0: it went on until the
     # gradient was 1e-4): small seed 0 converged in 3 steps instead of 6, 2.8 -> 2.1 CPU s, cameras within
     # 0.064 mm of the full run (tiny: 0.008 mm); at 1e-6 (Ceres' default) up to 1.06 mm
-    if not seeding and rec.num_reg_images() > FULL_CONVERGENCE_UP_TO_PHOTOS:
-        opts.ceres.solver_options.function_tolerance = FUNCTION_TOLERANCE
     if not seeding:
+        if rec.num_reg_images() > FULL_CONVERGENCE_UP_TO_PHOTOS:
+            opts.ceres.solver_options.function_tolerance = FUNCTION_TOLERANCE
         # the reduced camera system solved dense up to DENSE_UP_TO_PHOTOS photos (COLMAP: 50, then sparse):
         # the same blocks (0.0 mm), small seed 0 (120 photos) BA 2.9 -> 2.3 CPU s, medium (650) 29.9 -> 26.7
         opts.ceres.max_num_images_direct_dense_cpu_solver = DENSE_UP_TO_PHOTOS

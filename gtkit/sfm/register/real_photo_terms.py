@@ -275,20 +275,19 @@ def refined_intrinsics(model_dir: Path) -> dict[int, list[str]]:
 
 
 def reference_shape(ref_model: Path, names: set[str] | None = None, settings: SigmaSettings = SigmaSettings(),
-                    feature_side: int | None = None, positions: dict[str, np.ndarray] | None = None,
-                    accuracy: dict[str, float] | None = None, positions_of=None) -> ReferenceShape | None:
+                    feature_side: int | None = None, positions_of=None) -> ReferenceShape | None:
     """The reference block's own uncertainty, per photo (the part its ground points carry, in the
     block's similarity datum; see the module's docstring), from the SfM model in ``ref_model`` with
     the intrinsics free that the SfM refined (``block.json``: their uncertainty is the lens model's).
     ``names``: the photos the queries tie to (a block over ``settings.max_photos`` is cut to them and
     their neighbours); ``feature_side``: the long side its features were found at (:func:`feature_noise_px`);
-    ``positions``: the photos' positions (project frame, m), ``accuracy`` their stated accuracy (m, one
-    value or horizontal and vertical):
+    ``positions_of``: a function of the photos' names returning their positions (project frame, m) and
+    their stated accuracy (m, one value or horizontal and vertical; or None), called only for a block
+    k^2 can test (:data:`K2_MIN_PHOTOS` to :data:`K2_MAX_PHOTOS` photos: a large block's positions are
+    never read):
     the upper bound of k^2 of the centres against them (:func:`position_misfit`, :func:`k2_upper`)
     scales every ground part where they can test the block (see :data:`K2_MAX_SCATTER_M`); elsewhere
-    the features' pixel is taken at :func:`sigma_side`. ``positions_of``: instead of ``positions`` and
-    ``accuracy``, a function of the photos' names returning both, called only for a block k^2 can test
-    (fewer than :data:`K2_MAX_PHOTOS` photos): a large block's positions are never read here.
+    the features' pixel is taken at :func:`sigma_side`.
     None where the block's covariance cannot be computed."""
     t0 = time.time()
     rec = pycolmap.Reconstruction(str(ref_model))
@@ -337,7 +336,8 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
               for i in ids]
     k2 = k2_scatter = None
     share = 0.0
-    if positions is None and positions_of is not None and K2_MIN_PHOTOS <= n < K2_MAX_PHOTOS:
+    positions = accuracy = None
+    if positions_of is not None and K2_MIN_PHOTOS <= n < K2_MAX_PHOTOS:
         positions, accuracy = positions_of([rec.images[i].name for i in ids])
     keep = [a for a, i in enumerate(ids) if positions and rec.images[i].name in positions]
     if len(keep) >= K2_MIN_PHOTOS:
@@ -348,12 +348,10 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
         pred = np.array([np.trace(Sd[3 * a:3 * a + 3, 3 * a:3 * a + 3]) * scales[a] for a in keep])
         if np.all(np.isfinite(G)) and np.all(np.isfinite(pred)):
             k2, k2_scatter, share = position_misfit(C, G, pred, acc)
-    if k2 is None and n >= K2_MAX_PHOTOS and positions is None:
+    if n >= K2_MAX_PHOTOS:
         why = f"{n} photos in the block (a fit over {K2_MAX_PHOTOS} or more is not made)"
     elif k2 is None:
         why = f"{len(keep)} photos with positions (needs {K2_MIN_PHOTOS})"
-    elif len(keep) >= K2_MAX_PHOTOS:
-        why = f"{len(keep)} photos with positions (a fit over {K2_MAX_PHOTOS} or more is not made)"
     elif k2_scatter >= K2_MAX_SCATTER_M:
         why = f"positions scatter {k2_scatter:.2f} m after the similarity (too coarse to test the block)"
     elif share >= 0.5:
