@@ -9,7 +9,7 @@ import pytest
 from gtkit.pose import Pose, skew
 from gtkit.sfm.register.real_photo_terms import (SigmaSettings, _similarity_datum, feature_noise_px,
                                                  feature_side_of, reference_shape, residual_variance_factor)
-from gtkit.sfm.register.uncertainty import _with_reference
+from gtkit.sfm.register.uncertainty import with_centre_covariance
 
 
 def _block(noise, n_images=9, n_points=1500, seed=0, width=1000, height=800, spacing=20.0):
@@ -75,7 +75,7 @@ def test_the_reference_term_adds_its_centre_covariance_exactly():
                 Pose.from_center(np.eye(3), np.array([3.0, -2.0, 50.0])).t, np.diag(rng.uniform(1e-6, 1e-4, 6)))
     M = rng.normal(size=(3, 3)) * 0.01
     c_ref = M @ M.T
-    out = _with_reference(pose, c_ref)
+    out = with_centre_covariance(pose, c_ref)
     assert np.allclose(out.center_covariance(), pose.center_covariance() + c_ref)
     assert np.allclose(out.covariance[:3, :3], pose.covariance[:3, :3])   # rotations untouched
 

@@ -69,6 +69,20 @@ def neighbour_views(pose: Pose, ref_rec: pycolmap.Reconstruction, k: int, ground
     return out
 
 
+def photo_pairs(ref_rec: pycolmap.Reconstruction, poses: dict[str, Pose], neighbours: int) -> list[tuple[str, str]]:
+    """The pairs to match for photos at ``poses`` joining the reference block: each with its
+    ``neighbours`` nearest reference views (:func:`neighbour_views`), and the photos of one sequence
+    with each other."""
+    ground_z = float(np.median([p.xyz[2] for p in ref_rec.points3D.values()]))
+    names = sorted(poses)
+    pairs = []
+    for n in names:
+        pairs += [(n, r) for r in neighbour_views(poses[n], ref_rec, neighbours, ground_z)]
+    pairs += [(a, b) for i, a in enumerate(names) for b in names[i + 1:]
+              if a.split("/")[:2] == b.split("/")[:2]]   # photos of one sequence with each other
+    return pairs
+
+
 def _copy_features(src: Path, names: list[str], dst: pycolmap.Database, ids: dict[str, int]) -> None:
     with pycolmap.Database.open(src) as db:
         for n in names:
@@ -77,14 +91,11 @@ def _copy_features(src: Path, names: list[str], dst: pycolmap.Database, ids: dic
             dst.write_descriptors(ids[n], db.read_descriptors(im.image_id))
 
 
-def register_into_reference(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str, tuple[Camera, Path]],
-                            pairs: list[tuple[str, str]], image_root: Path, work: Path, match: MatchSettings | None = None,
-                            num_threads: int = 2, seed: int = 0, reproducible: bool = True
-                            ) -> pycolmap.Reconstruction | None:
-    """The reference block with ``photos`` ({name: (camera, its sequence's feature database)}) registered
-    into it by COLMAP's mapper, the reference poses held (``fix_existing_frames``), after matching the
-    name ``pairs`` (keypoint to keypoint; features copied, not extracted again); None where the mapper
-    made nothing. Works on a copy of the reference database in ``work`` (emptied first)."""
+def extended_database(ref_db: Path, photos: dict[str, tuple[Camera, Path]], pairs: list[tuple[str, str]],
+                      image_root: Path, work: Path, match: MatchSettings | None = None, num_threads: int = 2) -> Path:
+    """A copy of the reference database in ``work`` (emptied first) with ``photos`` ({name: (camera, its
+    sequence's feature database)}) added, their features copied (not extracted again), and the name
+    ``pairs`` matched keypoint to keypoint. Returns its path."""
     work = Path(work)
     if work.exists():
         shutil.rmtree(work)
@@ -118,6 +129,18 @@ def register_into_reference(ref_rec: pycolmap.Reconstruction, ref_db: Path, phot
         for src, group in by_db.items():
             _copy_features(src, group, db, ids)
     match_pairs(db_path, pairs, match or MatchSettings(num_threads=num_threads), work)
+    return db_path
+
+
+def register_into_reference(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str, tuple[Camera, Path]],
+                            pairs: list[tuple[str, str]], image_root: Path, work: Path, match: MatchSettings | None = None,
+                            num_threads: int = 2, seed: int = 0, reproducible: bool = True
+                            ) -> pycolmap.Reconstruction | None:
+    """The reference block with ``photos`` ({name: (camera, its sequence's feature database)}) registered
+    into it by COLMAP's mapper, the reference poses held (``fix_existing_frames``), after matching the
+    name ``pairs`` (:func:`extended_database`); None where the mapper made nothing."""
+    work = Path(work)
+    db_path = extended_database(ref_db, photos, pairs, image_root, work, match, num_threads)
     model_in = work / "reference"
     model_in.mkdir()
     ref_rec.write(model_in)
@@ -143,13 +166,8 @@ def extension_ties(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[
     photos = {n: v for n, v in photos.items() if Path(v[2]).is_file()}
     if not photos or not Path(ref_db).is_file() or ref_rec.num_points3D() == 0:
         return {}, {}
-    ground_z = float(np.median([p.xyz[2] for p in ref_rec.points3D.values()]))
     names = sorted(photos)
-    pairs = []
-    for n in names:
-        pairs += [(n, r) for r in neighbour_views(photos[n][0], ref_rec, settings.neighbours, ground_z)]
-    pairs += [(a, b) for i, a in enumerate(names) for b in names[i + 1:]
-              if a.split("/")[:2] == b.split("/")[:2]]   # photos of one sequence with each other
+    pairs = photo_pairs(ref_rec, {n: v[0] for n, v in photos.items()}, settings.neighbours)
     rec = register_into_reference(ref_rec, ref_db, {n: (v[1], v[2]) for n, v in photos.items()}, pairs, image_root,
                                   work, match, num_threads, seed, reproducible)
     records = {n: {"registered": False, "n_ties": 0} for n in names}

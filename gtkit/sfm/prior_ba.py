@@ -92,11 +92,14 @@ def drop_unplaceable_points(rec: pycolmap.Reconstruction, min_depth_ratio: float
 
 def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndarray], outliers: set[str],
                       accuracy: dict[str, float] | None = None, min_sigma_m: float = 0.005,
-                      max_iterations: int = 50, num_threads: int = -1, seeding: bool = False) -> dict:
+                      max_iterations: int = 50, num_threads: int = -1, seeding: bool = False,
+                      sigma_hv: tuple[float, float] | None = None) -> dict:
     """Pose-prior BA of a georegistered block (see the module docstring); returns its report.
     ``seeding``: the seeded mapper's seeding BA (gtkit.sfm.seeded), as COLMAP runs it: every point kept
     (they are triangulated from the priors and filtered by the mapper after it), its stop and its choice
-    of linear solver (the mapping unchanged by what is tuned here for the georegistration)."""
+    of linear solver (the mapping unchanged by what is tuned here for the georegistration).
+    ``sigma_hv``: the priors' horizontal and vertical sigma where a position states no accuracy (default:
+    the block's scatter about its positions, as above)."""
     accuracy = accuracy or {}
     names = sorted(im.name for im in rec.images.values()
                    if im.has_pose and im.name in positions and im.name not in outliers
@@ -106,8 +109,7 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
     t0 = time.time()
     dropped = {} if seeding else drop_unplaceable_points(rec)
     r0 = _residuals(rec, positions, names)
-    sig_h = max(min_sigma_m, _scatter(r0[:, :2].ravel()))
-    sig_v = max(min_sigma_m, _scatter(r0[:, 2]))
+    sig_h, sig_v = sigma_hv or (max(min_sigma_m, _scatter(r0[:, :2].ravel())), max(min_sigma_m, _scatter(r0[:, 2])))
     priors = []
     by_name = {im.name: im for im in rec.images.values()}
     for n in names:

@@ -74,7 +74,8 @@ def collect(project: Project) -> dict:
         est = read_poses(P.poses(REGISTER_STAGE)) if P.poses(REGISTER_STAGE).is_file() else {}
         rep.update({k: reg.get(k) for k in ("median_reproj_px", "mean_reproj_px", "median_tiepoint_reproj_px",
                                              "n_registered", "n_unverified", "n_images", "sequences", "bad_tiepoints",
-                                             "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba", "tie_surface")})
+                                             "n_tiepoints_in_ba", "n_auto_tiepoints_in_ba", "tie_surface",
+                                             "coestimation")})
         rep["per_image"] = {n: dict(v) for n, v in reg.get("images", {}).items()}
         rep["sequences_needing_clicks"] = {q: s.get("error") for q, s in record.sequences(reg).items()
                                            if record.outcome(s) == record.NEEDS_CLICKS}
@@ -133,6 +134,11 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
     if ts:   # how the automatic ties were judged: by the model in 3D, or not (no model)
         L.append(f"| automatic ties on the model: smooth / off smooth surface / undecided (kept) | {ts['n_smooth']} / "
                  f"{ts['n_rough']} / {ts['n_undecided']} |" if ts.get("model") else f"| automatic ties | {ts['why']} |")
+    co = rep.get("coestimation")
+    if co:   # the query photos adjusted together with a small reference block (gtkit.sfm.register.coestimate)
+        L.append("| query photos co-estimated with the reference block | "
+                 + (f"{co['n_photos']} photos, moved {1000 * co['query_moved_median_m']:.1f} mm (median) from the joint "
+                    f"adjustment, the move added to their sigma |" if co.get("applied") else f"no: {co.get('reason')} |"))
     seqs = rep.get("sequences") or {}
     if seqs:
         n = record.counts(seqs)

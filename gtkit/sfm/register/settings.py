@@ -10,6 +10,7 @@ from ..crossmatch import CrossMatchSettings
 from ..extend_reference import ExtendSettings
 from ..guided_clicks import GuidanceSettings
 from ..tie_surface import SmoothSurfaceSettings
+from .coestimate import CoestimateSettings
 from .real_photo_terms import SigmaSettings
 
 STAGE = "register"
@@ -119,6 +120,9 @@ class RegisterSettings:
     # photos placed on their own (left out by their sequence's SfM): registered into the reference
     # block by keypoint matches with the reference photos, its points joining as automatic ties
     extend: ExtendSettings = field(default_factory=ExtendSettings)
+    # on a small reference block held by its positions: the registered query photos and the reference
+    # block adjusted together, as one SfM of all the photos would (gtkit.sfm.register.coestimate)
+    coestimate: CoestimateSettings = field(default_factory=CoestimateSettings)
 
 
 def check_settings(settings: RegisterSettings, root: Path) -> None:

@@ -28,6 +28,7 @@ from .settings import STAGE, RegisterSettings, check_settings
 from .joint import ties_per_photo
 from .tie_bias import _adjust_choosing_ties
 from .uncertainty import query_poses
+from .coestimate import carry_over, coestimate, why_not
 
 log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
 
@@ -210,6 +211,7 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     poses, cams, covs, per_image, floors = query_poses(j, cov, settings.systematic_swing_px, swung, placed.resected,
                                                        P.stage(REFERENCE_STAGE) / "model", settings.sigma, sides,
                                                        ref_positions_of)
+    poses, result["coestimation"] = _coestimated(project, ref, placed, poses, cams, covs, per_image, floors, out)
     tie_rows, bad = tie_table(j, clicks, placed.statuses, dropped, placed.report, prefixes)
     for seq in blocks:
         placed.report[seq]["n_tiepoints_final_ba"] = sum(1 for r in tie_rows.values()
@@ -217,3 +219,38 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     result.update(joint_record(j, summary, per_image, tie_rows, bad, auto, n_auto_found, smooth_only, auto_choice,
                                {"sim3": t_sim - t0, "cross_matching": t_cm, "joint_ba": t_ba - t_sim - t_cm}))
     return write_record(out, project, j, cov, ref.rec, poses, cams, covs, floors, result, settings, inputs)
+
+
+def _coestimated(project: Project, ref: ReferenceBlock, placed: Placed, poses: dict, cams: dict, covs: dict,
+                 per_image: dict, floors: dict, out: Path) -> tuple[dict, dict]:
+    """(the query poses, co-estimated with a small reference block where :mod:`.coestimate` applies,
+    its record)."""
+    import json
+
+    settings = ref.settings
+    try:
+        block = json.loads((project.paths.stage(REFERENCE_STAGE) / "block.json").read_text())
+    except (OSError, ValueError):
+        block = {}
+    held = block.get("held_by_positions")
+    why = why_not(ref.rec, held, settings.coestimate)
+    if why is None:
+        names = sorted(im.name for im in ref.rec.images.values() if im.has_pose)
+        try:
+            positions, accuracy = positions_and_accuracy(project, names)
+        except GtkitError as e:
+            positions, why = {}, f"the reference photos' positions unreadable ({e})"
+    if why is not None:
+        log.info("query photos not co-estimated with the reference block: %s", why)
+        return poses, {"applied": False, "reason": why}
+    priors = {"positions": positions, "accuracy": accuracy, "sigma_hv": (held["sigma_h_m"], held["sigma_v_m"]),
+              "outliers": (block.get("georegistration") or {}).get("outliers") or []}
+    photos = {n: (p, cams[n], project.paths.stage(QUERIES_STAGE) / n.split("/")[1] / "database.db")
+              for n, p in poses.items()}
+    moved_to, record = coestimate(ref.rec, ref.db, photos, priors, project.paths.images, out / "coestimate",
+                                  settings.coestimate, num_threads=settings.num_threads,
+                                  reproducible=settings.reproducible)
+    if not moved_to:
+        log.warning("query photos not co-estimated with the reference block: %s", record.get("reason"))
+        return poses, record
+    return carry_over(poses, covs, per_image, floors, moved_to), record

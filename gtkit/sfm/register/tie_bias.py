@@ -11,7 +11,7 @@ import numpy as np
 from ...pose import Pose
 from .joint import Joint, _adjust, _median_depth
 from .settings import RegisterSettings
-from .uncertainty import _ba_pose, _position_sigma
+from .uncertainty import _ba_pose, position_sigma
 
 log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
 
@@ -50,7 +50,7 @@ def solution_shift(a: tuple[Pose, float], s: tuple[Pose, float], on: str) -> tup
       hold) moves its centre but not this; biased ties, which shift the image, move both."""
     (pa, depth), (ps, _) = a, s
     if on == "centre":
-        return float(np.linalg.norm(pa.center - ps.center)), _position_sigma(pa), _position_sigma(ps)
+        return float(np.linalg.norm(pa.center - ps.center)), position_sigma(pa), position_sigma(ps)
     X = pa.center + pa.R.T @ np.array([0.0, 0.0, depth])
 
     def sigma(p: Pose) -> float | None:

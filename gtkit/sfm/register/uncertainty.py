@@ -25,7 +25,7 @@ def swing_covariance(t: np.ndarray, depth_m: float, focal_px: float, swing_px: f
     return J @ np.diag([tilt ** 2, tilt ** 2, 0.0]) @ J.T
 
 
-def _position_sigma(pose: Pose) -> float | None:
+def position_sigma(pose: Pose) -> float | None:
     """The 1-sigma radius of the camera centre, sqrt(trace), or None without a covariance."""
     cc = pose.center_covariance()
     return None if cc is None else float(np.sqrt(np.trace(cc)))
@@ -51,7 +51,7 @@ def _sequence_factors(j: Joint, qids: list[int], sigma: SigmaSettings) -> dict[s
     return {q: residual_variance_factor(j.rec, ids, sigma) for q, ids in by_seq.items()}
 
 
-def _with_reference(pose: Pose, c_ref: np.ndarray) -> Pose:
+def with_centre_covariance(pose: Pose, c_ref: np.ndarray) -> Pose:
     """``pose`` with a centre covariance ``c_ref`` (world frame) added as a shift of its centre:
     ``dt = -R dC``, so its centre covariance grows by exactly ``c_ref``."""
     add = np.zeros((6, 6))
@@ -91,7 +91,7 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
         seq = im.name.split("/")[1]
         pose = _ba_pose(rec, cov, iid)
         ok = pose.covariance is not None
-        sigma_ba = _position_sigma(pose)
+        sigma_ba = position_sigma(pose)
         k2 = shape is not None and shape.k2_applied and side.get(seq) and side.get(seq) == side.get("reference")
         # features found at the reference block's size: its measured k^2 holds for this BA's covariance
         # too; elsewhere the features' pixel is taken no finer than the default's (sigma_side)
@@ -120,7 +120,7 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
             terms["reference_k2_factor"] = shape.k2_factor if shape.k2_applied else None
             terms["reference_k2_not_applied"] = shape.k2_reason or None
             floors[im.name] = floors.get(im.name, 0.0) + float(np.trace(c_ref))
-            pose = _with_reference(pose, c_ref)
+            pose = with_centre_covariance(pose, c_ref)
         poses[im.name] = pose
         cams[im.name] = Camera.from_pycolmap(rec.cameras[im.camera_id])
         info = {"sequence": seq, "n_points": int(im.num_points3D),
@@ -129,7 +129,7 @@ def query_poses(j: Joint, cov, swing_px: float, swung: set[str], resected: dict,
             info["resected"] = resected[im.name]
         if ok:
             covs[im.name] = pose.covariance
-            info["sigma_pos_m"] = _position_sigma(pose)
+            info["sigma_pos_m"] = position_sigma(pose)
             info["sigma_rot_deg"] = float(np.degrees(np.sqrt(np.trace(pose.covariance[:3, :3]))))
             info["sigma_pos_ba_m"] = sigma_ba   # the final BA's alone, without the terms added
             info["sigma_terms"] = terms
