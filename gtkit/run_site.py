@@ -192,7 +192,7 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
                                for s, b in qsum.items()}
     reg = record.read_registration(P.registration)
     if reg:
-        imgs = (reg.get("images") or {}).values()
+        imgs = [i for i in (reg.get("images") or {}).values() if "unverified" not in i]   # the results
         out["pseudo_gt"] = {"n_registered": reg.get("n_registered"), "n_images": reg.get("n_images"),
                             "n_unverified": reg.get("n_unverified") or 0,
                             "median_sigma_pos_m": _median(i.get("sigma_pos_m") for i in imgs),
@@ -222,7 +222,7 @@ def collect(project: Project, results: list[StageResult], seconds: float | None 
                        if "error" in b and q not in placed] + [f"pseudo-GT {q}: {e}" for q, e in
                                            ((out.get("pseudo_gt") or {}).get("errors") or {}).items()]
     if (out.get("pseudo_gt") or {}).get("n_unverified"):   # poses without sigma: not results (issue 55)
-        out["problems"].append(f"pseudo-GT: {out['pseudo_gt']['n_unverified']} query photos unverified (no sigma; "
+        out["problems"].append(f"pseudo-GT: {out['pseudo_gt']['n_unverified']} query photos unverified (no usable sigma; "
                                "why: reports/gt_report.md, 'Unverified photos')")
     out["problems"] += [f"stage {r.name} failed: {r.why}" for r in results if r.status == "failed"]
     out["exports"] = sorted(rel(project, f) for f in (P.dsm, P.ortho, P.mesh_export, P.coordinates) if f.exists())

@@ -87,7 +87,7 @@ def print_summary(s: dict) -> None:
         print(f"pseudo-GT     {pg.get('n_registered')}/{pg.get('n_images')} query photos registered, median sigma "
               f"{_f(pg.get('median_sigma_pos_m'))} m / {_f(pg.get('median_sigma_rot_deg'))} deg, reprojection "
               f"{_f(pg.get('median_reproj_px'), '{:.2f}')} px"
-              + (f"; {pg['n_unverified']} UNVERIFIED (a pose without sigma is not a result: reports/gt_report.md)"
+              + (f"; {pg['n_unverified']} UNVERIFIED (a pose without a usable sigma is not a result: reports/gt_report.md)"
                  if pg.get("n_unverified") else ""))
         for seq, how in (pg.get("registered_how") or pg.get("registered_by") or {}).items():
             print(f"              {seq}: registered by {how}")

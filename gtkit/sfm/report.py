@@ -124,7 +124,7 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
     L += ["| figure | value |", "|---|---|",
           f"| query photos registered (a pose with its sigma) | {rep['n_registered']} / {rep['n_images']} |"]
     if rep.get("n_unverified"):
-        L.append(f"| query photos UNVERIFIED (a pose without sigma: not a result) | {rep['n_unverified']} |")
+        L.append(f"| query photos UNVERIFIED (a pose without a usable sigma: not a result) | {rep['n_unverified']} |")
     L += [
           f"| median reprojection error (SfM points, joint BA) | {_fmt(rep.get('median_reproj_px'), 2)} px |",
           f"| median tie-point reprojection error | {_fmt(rep.get('median_tiepoint_reproj_px'), 2)} px |",
@@ -172,8 +172,8 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
         L += [f"- **{seq}**: {why}" for seq, why in need.items()]
     unver = {n: e["unverified"] for n, e in (rep.get("per_image") or {}).items() if e.get("unverified")}
     if unver:
-        L += ["", "## Unverified photos", "", "A pose without a sigma is not a result: these photos are left out of "
-              "the exports' ground truth.", ""]
+        L += ["", "## Unverified photos", "", "A pose without a sigma, or with one larger than the photo's distance to "
+              "what it sees, is not a result: these photos are left out of the exports' ground truth.", ""]
         L += [f"- {n}: {why}" for n, why in sorted(unver.items())]
     L += ["", "## Sequences", ""]
     for seq, s in (rep.get("sequences") or {}).items():

@@ -27,7 +27,7 @@ from .sequences import Placed, place_sequences
 from .settings import STAGE, RegisterSettings, check_settings
 from .joint import ties_per_photo
 from .tie_bias import _adjust_choosing_ties
-from .uncertainty import query_poses
+from .uncertainty import query_poses, unverify_uninformative
 from .coestimate import carry_over, coestimate, why_not
 
 log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
@@ -212,6 +212,8 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
                                                        P.stage(REFERENCE_STAGE) / "model", settings.sigma, sides,
                                                        ref_positions_of)
     poses, result["coestimation"] = _coestimated(project, ref, placed, poses, cams, covs, per_image, floors, out)
+    for n in unverify_uninformative(per_image):
+        log.warning("%s: unverified: %s", n, per_image[n]["unverified"])
     tie_rows, bad = tie_table(j, clicks, placed.statuses, dropped, placed.report, prefixes)
     for seq in blocks:
         placed.report[seq]["n_tiepoints_final_ba"] = sum(1 for r in tie_rows.values()
