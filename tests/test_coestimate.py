@@ -7,7 +7,8 @@ import numpy as np
 import pycolmap
 
 from gtkit.pose import Pose
-from gtkit.sfm.register.coestimate import CoestimateSettings, carry_over, why_not
+from gtkit.sfm.register.coestimate import carry_over, why_not
+from gtkit.sfm.register.settings import CoestimateSettings
 
 
 def _block(n_photos: int) -> pycolmap.Reconstruction:

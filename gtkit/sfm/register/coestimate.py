@@ -29,7 +29,6 @@ SfM of all the photos: 13.1.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -40,16 +39,10 @@ from ...determinism import ba_threads, single_thread_mapper
 from ...pose import Pose
 from ..extend_reference import extended_database, photo_pairs
 from ..prior_ba import hold_by_positions
+from .settings import CoestimateSettings
+from .uncertainty import position_sigma, with_centre_covariance
 
 log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
-
-
-@dataclass
-class CoestimateSettings:
-    """``[register.coestimate]``."""
-    enabled: bool = True
-    up_to_photos: int = 40   # reference blocks of at most this many photos (the whole block's BA runs again)
-    neighbours: int = 8      # reference photos each query photo is matched with (nearest views)
 
 
 def why_not(ref_rec: pycolmap.Reconstruction, held: dict | None, settings: CoestimateSettings) -> str | None:
@@ -171,8 +164,6 @@ def carry_over(poses: dict[str, Pose], covs: dict, per_image: dict, floors: dict
     a systematic term along it (its centre covariance grows by d d^T, d the move in the world), kept in
     ``floors`` with the other systematic terms; ``covs`` and ``per_image``'s sigmas and terms updated.
     Returns the new poses."""
-    from .uncertainty import position_sigma, with_centre_covariance   # (it imports the settings, which import this)
-
     out = dict(poses)
     for n, new in moved_to.items():
         old = poses[n]

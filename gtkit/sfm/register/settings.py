@@ -10,7 +10,6 @@ from ..crossmatch import CrossMatchSettings
 from ..extend_reference import ExtendSettings
 from ..guided_clicks import GuidanceSettings
 from ..tie_surface import SmoothSurfaceSettings
-from .coestimate import CoestimateSettings
 from .real_photo_terms import SigmaSettings
 
 STAGE = "register"
@@ -55,6 +54,15 @@ class UnguidedSettings:
     top_k: int = 12              # else with this many, ranked by visual words
     words: int = 256             # visual words of the ranking's vocabulary (k-means over reference SIFT)
     sample_per_photo: int = 500  # descriptors a photo contributes to the ranking
+
+
+@dataclass
+class CoestimateSettings:
+    """``[register.coestimate]``: the query photos co-estimated with a small reference block
+    (:mod:`gtkit.sfm.register.coestimate`)."""
+    enabled: bool = True
+    up_to_photos: int = 40   # reference blocks of at most this many photos (the whole block's BA runs again)
+    neighbours: int = 8      # reference photos each query photo is matched with (nearest views)
 
 
 @dataclass
