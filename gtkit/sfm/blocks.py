@@ -44,7 +44,7 @@ from .geometry import model_cameras, model_poses
 from .georegister import GeoregisterSettings
 from .georeg_step import (MappedBlock, block_gcps, georegister_models, load_mapped, mapping_inputs, mapping_key,
                           positions_moved, reusable, save_mapped, stated_gcp_accuracy)
-from .prior_ba import hold_by_positions
+from .prior_ba import hold_by_positions, moved_off_positions
 from .pairs import block_pairs
 from .reference_report import write_reference_report
 
@@ -517,11 +517,8 @@ def _hold_by_positions(rec, kind: str, settings: SfmSettings, summary: dict, pos
         held = hold_by_positions(rec, positions, set(geo.get("outliers", []))
                                  | set(mapper_record.get("prior_outliers", [])), accuracy,
                                  num_threads=ba_threads(settings.num_threads, settings.reproducible))
-        res = held.get("residual_median_m") or {}
-        if held.get("applied") and res and res["after"] > max(2.0 * res["before"], res["before"] + 0.05):
-            # the BA moved the block off the positions it was fitted to (pycolmap's prior alignment
-            # with its RANSAC threshold left at 0 did so on surveyed blocks: 0.069 -> 5.46 m): keep
-            # the georegistered block as it was, and say so
+        if moved_off_positions(held):   # keep the georegistered block as it was, and say so
+            res = held["residual_median_m"]
             rec = before_ba
             held = {**held, "applied": False, "reverted": True,
                     "reason": f"the pose-prior BA moved the block off its positions (residual median "

@@ -10,6 +10,7 @@ from pathlib import Path
 
 
 from ...errors import GtkitError
+from ...io.atomic import read_json_object
 from ...io.tiepoints import read_tiepoints
 from ...photo_positions import positions_and_accuracy
 from ...project import Project, file_fingerprint, stage_done, start_stage_clock
@@ -227,13 +228,8 @@ def _coestimated(project: Project, ref: ReferenceBlock, placed: Placed, poses: d
                  per_image: dict, floors: dict, out: Path) -> tuple[dict, dict]:
     """(the query poses, co-estimated with a small reference block where :mod:`.coestimate` applies,
     its record)."""
-    import json
-
     settings = ref.settings
-    try:
-        block = json.loads((project.paths.stage(REFERENCE_STAGE) / "block.json").read_text())
-    except (OSError, ValueError):
-        block = {}
+    block = read_json_object(project.paths.stage(REFERENCE_STAGE) / "block.json") or {}
     held = block.get("held_by_positions")
     why = why_not(ref.rec, held, settings.coestimate)
     if why is None:
