@@ -103,39 +103,19 @@ def test_twenty_percent_gross_mistakes(small, tmp_path):
     assert len(wide_bad & listed) >= 0.8 * len(wide_bad), (len(wide_bad & listed), len(wide_bad))
 
 
-def test_too_few_tiepoints_fails_that_sequence_only(small, tmp_path):
+@pytest.fixture(scope="module")
+def clipped(small, tmp_path_factory):
+    """One register run on a copy with two independent faults in two sequences (one run, not two: each
+    run of the small sample's register is 1.5 min): seq3 has only 2 clicked tie points left, and
+    seq2/0004_W (wide) is left out by its sequence's SfM with no click on it."""
+    import pycolmap
+
     root, _ = small
-    dst = tmp_path / "q"
+    dst = tmp_path_factory.mktemp("clipped") / "p"
     shutil.copytree(root, dst, symlinks=True, ignore=shutil.ignore_patterns("register", "reports"))
     tps = read_tiepoints(dst / "tiepoints.json")
     seq3 = [t for t in tps if any(o.image.startswith("queries/seq3/") and "_W" in o.image for o in t.observations)]
-    write_tiepoints(dst / "tiepoints.json", [t for t in tps if t not in seq3] + seq3[:2])
-    # too few clicks: the sequence is placed by its photos' automatic matches instead, and says why
-    res = register.run(dst, stage_settings("register", dst))
-    s3 = res["sequences"]["seq3"]
-    assert s3["status"] == "registered" and s3["registered_by"] == "automatic matches" and "only" in s3["clicks"], s3
-    # its clicks still go into the joint BA, and are counted there as its own
-    rows = {i: res["tiepoints"][i] for i in (t.id for t in seq3[:2]) if i in res["tiepoints"]}
-    assert rows and all(r["sequence"] == "seq3" for r in rows.values()), rows
-    assert s3["n_tiepoints_final_ba"] == sum(r["in_final_ba"] for r in rows.values()), (s3, rows)
-    # with that turned off, only that sequence fails, with the reason
-    s = register.RegisterSettings()
-    s.bootstrap.enabled = False
-    res = register.run(dst, s, force=True)
-    assert res["sequences"]["seq3"]["status"] == "error" and "only" in res["sequences"]["seq3"]["error"]
-    assert res["sequences"]["seq1"]["status"] == res["sequences"]["seq2"]["status"] == "registered"
-
-
-def test_a_left_out_photo_without_clicks_is_resected_from_automatic_matches(small, tmp_path):
-    """A wide photo its sequence's SfM left out and nobody clicked (small seed 17's seq2/0002: 8 clicks,
-    5 consistent) is matched to the reference block's points around its metadata pose, then adjusted
-    with the rest: it gets a pose, flagged as resected from automatic matches."""
-    import pycolmap
-    from gtkit.io.poses import read_poses
-
-    root, _ = small
-    dst = tmp_path / "l"
-    shutil.copytree(root, dst, symlinks=True, ignore=shutil.ignore_patterns("register", "reports"))
+    tps = [t for t in tps if t not in seq3] + seq3[:2]
     name = "queries/seq2/0004_W.jpg"
     model = dst / "work" / "sfm_queries" / "seq2" / "model"
     rec = pycolmap.Reconstruction(model)
@@ -145,11 +125,39 @@ def test_a_left_out_photo_without_clicks_is_resected_from_automatic_matches(smal
     b = json.loads(block.read_text())
     b["unregistered"] = {name: "left out for this test"}
     block.write_text(json.dumps(b))
-    tps = read_tiepoints(dst / "tiepoints.json")
     for t in tps:
         t.observations = [o for o in t.observations if o.image != name]
     write_tiepoints(dst / "tiepoints.json", [t for t in tps if t.observations])
-    res = register.run(dst, stage_settings("register", dst))
+    return dst, register.run(dst, stage_settings("register", dst)), [t.id for t in seq3[:2]], name
+
+
+def test_too_few_tiepoints_fails_that_sequence_only(clipped, tmp_path):
+    dst, res, kept, _ = clipped
+    # too few clicks: the sequence is placed by its photos' automatic matches instead, and says why
+    s3 = res["sequences"]["seq3"]
+    assert s3["status"] == "registered" and s3["registered_by"] == "automatic matches" and "only" in s3["clicks"], s3
+    # its clicks still go into the joint BA, and are counted there as its own
+    rows = {i: res["tiepoints"][i] for i in kept if i in res["tiepoints"]}
+    assert rows and all(r["sequence"] == "seq3" for r in rows.values()), rows
+    assert s3["n_tiepoints_final_ba"] == sum(r["in_final_ba"] for r in rows.values()), (s3, rows)
+    # with that turned off, only that sequence fails, with the reason
+    off = tmp_path / "off"
+    shutil.copytree(dst, off, symlinks=True, ignore=shutil.ignore_patterns("register", "reports"))
+    s = register.RegisterSettings()
+    s.bootstrap.enabled = False
+    res = register.run(off, s, force=True)
+    assert res["sequences"]["seq3"]["status"] == "error" and "only" in res["sequences"]["seq3"]["error"]
+    assert res["sequences"]["seq1"]["status"] == res["sequences"]["seq2"]["status"] == "registered"
+
+
+def test_a_left_out_photo_without_clicks_is_resected_from_automatic_matches(small, clipped):
+    """A wide photo its sequence's SfM left out and nobody clicked (small seed 17's seq2/0002: 8 clicks,
+    5 consistent) is matched to the reference block's points around its metadata pose, then adjusted
+    with the rest: it gets a pose, flagged as resected from automatic matches."""
+    from gtkit.io.poses import read_poses
+
+    root, _ = small
+    dst, res, _, name = clipped
     rec = res["sequences"]["seq2"]["left_out_by_sfm"][name]
     assert rec["resected"] and rec["from"] == "automatic matches" and rec["n_auto_matches"] >= 100, rec
     assert rec["n_clicks"] == 0 and res["images"][name]["resected"]["from"] == "automatic matches"
