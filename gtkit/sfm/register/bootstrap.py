@@ -25,6 +25,7 @@ class Bootstrap:
     n_inliers: int = 0
     rmse_m: float | None = None
     fit_from: str = ""
+    metadata_failed: str = ""    # why matching around the metadata poses failed, where this is the fallback
 
     def record(self) -> dict:
         matched = [n for n, r in self.photos.items() if r.get("n_matches")]
@@ -32,7 +33,8 @@ class Bootstrap:
                 "n_photos_agreeing": sum(1 for r in self.photos.values() if r.get("agrees")),
                 "n_point_pairs": self.n_pairs, "n_sim3_inliers": self.n_inliers, "sim3_rmse_m": self.rmse_m,
                 "sim3_from": self.fit_from,
-                "photos": self.photos, **({"reason": self.reason} if self.reason else {})}
+                "photos": self.photos, **({"reason": self.reason} if self.reason else {}),
+                **({"metadata_guided_failed": self.metadata_failed} if self.metadata_failed else {})}
 
 
 def bootstrap_sequence(qrec: pycolmap.Reconstruction, priors, match, settings: RegisterSettings,

@@ -5,6 +5,7 @@ without clicks)."""
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,8 @@ from .bootstrap import Bootstrap, bootstrap_sequence
 from .clicked import _place
 from .settings import RegisterSettings
 from .unguided import place_unguided
+
+log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
 
 
 def _block_georegistered(block_json: Path) -> bool:
@@ -197,7 +200,19 @@ class ReferenceBlock:
                     break
             return pose, ref.xyz[rows], kk
 
-        return bootstrap_sequence(qrec, priors, match, settings, self.attitude_search)
+        out = bootstrap_sequence(qrec, priors, match, settings, self.attitude_search)
+        if out.sim is not None or not settings.unguided.enabled:
+            return out
+        # the poses the metadata gave led nowhere (a block GPS fit turned about its positions' line, an
+        # attitude far off): the photos' own keypoints, as for photos without metadata
+        alt = place_unguided(self, seq, qrec, db, settings)
+        if alt.sim is None:
+            out.reason += f"; matched without its metadata: {alt.reason}"
+            return out
+        log.info("sequence %s: matching around its metadata poses failed (%s); placed by keypoint matches "
+                 "instead", seq, out.reason)
+        alt.metadata_failed = out.reason
+        return alt
 
     def attitude_search(self, name: str) -> list[tuple[str, Pose]]:
         """Poses at the photo's GPS position with a grid of attitudes (no gimbal tags), labelled."""
