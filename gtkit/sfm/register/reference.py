@@ -206,13 +206,26 @@ class ReferenceBlock:
         # the poses the metadata gave led nowhere (a block GPS fit turned about its positions' line, an
         # attitude far off): the photos' own keypoints, as for photos without metadata
         alt = place_unguided(self, seq, qrec, db, settings)
-        if alt.sim is None:
-            out.reason += f"; matched without its metadata: {alt.reason}"
+        far = self._far_from_gps(qrec, alt.sim) if alt.sim is not None else None
+        if alt.sim is None or far is not None:
+            out.reason += f"; matched without its metadata: {alt.reason or far}"
             return out
         log.info("sequence %s: matching around its metadata poses failed (%s); placed by keypoint matches "
                  "instead", seq, out.reason)
         alt.metadata_failed = out.reason
         return alt
+
+    def _far_from_gps(self, qrec: pycolmap.Reconstruction, sim: pycolmap.Sim3d) -> str | None:
+        """Why a placement found without the metadata contradicts the photos' GPS positions (their median
+        distance from them over ``bootstrap.max_offset_m``: repeated texture matched the wrong place, as
+        on the tiny sample's 8-photo block, 111-134 m off), else None."""
+        d = [float(np.linalg.norm(np.asarray(sim * im.projection_center()) - c)) for im in qrec.images.values()
+             if im.has_pose and (c := self.gps_centre(im.name)) is not None]
+        limit = self.settings.bootstrap.max_offset_m
+        if d and np.median(d) > limit:
+            return (f"its photos were placed {np.median(d):.0f} m (median) from their GPS positions, more than "
+                    f"[register.bootstrap] max_offset_m = {limit:g}: taken for a false match")
+        return None
 
     def attitude_search(self, name: str) -> list[tuple[str, Pose]]:
         """Poses at the photo's GPS position with a grid of attitudes (no gimbal tags), labelled."""
