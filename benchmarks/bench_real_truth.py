@@ -109,6 +109,35 @@ def anchor_features(set_dir: Path, work: Path) -> Path:
     return db
 
 
+def known_pinhole(set_dir: Path, db: Path) -> None:
+    """Every camera of the database ``db`` made K.txt's PINHOLE (a focal prior)."""
+    import pycolmap
+
+    fx, fy, cx, cy = map(float, (set_dir / "K.txt").read_text().split())
+    d = pycolmap.Database.open(db)
+    for cam in d.read_all_cameras():
+        cam.model = pycolmap.CameraModelId.PINHOLE
+        cam.params = [fx, fy, cx + 0.5, cy + 0.5]   # K.txt: top-left pixel centre (0, 0); COLMAP (0.5, 0.5)
+        cam.has_prior_focal_length = True
+        d.update_camera(cam)
+    d.close()
+
+
+def match_seeded(db: Path, seed: int) -> None:
+    """Exhaustive matching of ``db``, its geometric verification's RANSAC seeded."""
+    import pycolmap
+
+    ver = pycolmap.TwoViewGeometryOptions()
+    ver.ransac.random_seed = seed
+    pycolmap.match_exhaustive(db, verification_options=ver)
+
+
+def rotation_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """The angle between two rotations (degrees), exact near 0: |Ra^T Rb - I| = 2 sqrt(2) sin(angle / 2)."""
+    d = np.linalg.norm(Ra.T @ Rb - np.eye(3))
+    return float(np.degrees(2 * np.arcsin(min(1.0, d / (2 * np.sqrt(2))))))
+
+
 def anchor_run(set_dir: Path, known: bool, seed: int, feat_db: Path, work: Path, refine_pp: bool = False,
                every: int = 3) -> dict:
     """One SfM of all photos; held-out / reference centre errors (m) and held-out rotation errors (deg)."""
@@ -120,17 +149,8 @@ def anchor_run(set_dir: Path, known: bool, seed: int, feat_db: Path, work: Path,
     db = out / "database.db"
     shutil.copy(feat_db, db)
     if known:
-        fx, fy, cx, cy = map(float, (set_dir / "K.txt").read_text().split())
-        d = pycolmap.Database.open(db)
-        for cam in d.read_all_cameras():
-            cam.model = pycolmap.CameraModelId.PINHOLE
-            cam.params = [fx, fy, cx + 0.5, cy + 0.5]   # K.txt: top-left pixel centre (0, 0); COLMAP (0.5, 0.5)
-            cam.has_prior_focal_length = True
-            d.update_camera(cam)
-        d.close()
-    ver = pycolmap.TwoViewGeometryOptions()
-    ver.ransac.random_seed = seed
-    pycolmap.match_exhaustive(db, verification_options=ver)
+        known_pinhole(set_dir, db)
+    match_seeded(db, seed)
     opt = pycolmap.IncrementalPipelineOptions()
     opt.random_seed = seed
     if known:
@@ -151,9 +171,7 @@ def anchor_run(set_dir: Path, known: bool, seed: int, feat_db: Path, work: Path,
     def err(n):
         Rc, C = est[n]
         Rw = Rc @ R.T                                   # world-to-camera in the set's frame
-        d = np.linalg.norm(truth[n][0].T @ Rw - np.eye(3))   # = 2 sqrt(2) sin(angle / 2), exact near 0
-        ang = np.degrees(2 * np.arcsin(min(1.0, d / (2 * np.sqrt(2)))))
-        return float(np.linalg.norm(c * R @ C + t - truth[n][1])), float(ang)
+        return float(np.linalg.norm(c * R @ C + t - truth[n][1])), rotation_deg(truth[n][0], Rw)
 
     q = {n: err(n) for n in held if n in est}
     return {"seed": seed, "n_models": len(recs), "n_registered": len(est), "n_photos": len(names),
@@ -180,24 +198,14 @@ def anchor(set_dir: Path, known: bool, runs: int, work: Path, refine_pp: bool = 
 # ------------------------------------------------------------------------------------ the images' limit
 def _pinhole_database(set_dir: Path, feat_db: Path, out: Path) -> Path:
     """A copy of the set's features with K.txt's PINHOLE camera, matched exhaustively (seed 0)."""
-    import pycolmap
-
     db = out / "database.db"
     if db.is_file():
         return db
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "database.tmp.db"
     shutil.copy(feat_db, tmp)
-    fx, fy, cx, cy = map(float, (set_dir / "K.txt").read_text().split())
-    d = pycolmap.Database.open(tmp)
-    for cam in d.read_all_cameras():
-        cam.model = pycolmap.CameraModelId.PINHOLE
-        cam.params = [fx, fy, cx + 0.5, cy + 0.5]   # K.txt: top-left pixel centre (0, 0); COLMAP (0.5, 0.5)
-        d.update_camera(cam)
-    d.close()
-    ver = pycolmap.TwoViewGeometryOptions()
-    ver.ransac.random_seed = 0
-    pycolmap.match_exhaustive(tmp, verification_options=ver)
+    known_pinhole(set_dir, tmp)
+    match_seeded(tmp, 0)
     tmp.rename(db)
     return db
 
@@ -244,9 +252,8 @@ def images_limit(set_dir: Path, work: Path) -> dict:
             A = np.concatenate([[xy[0] * proj[i][2] - proj[i][0], xy[1] * proj[i][2] - proj[i][1]] for i, xy in others])
             X = np.linalg.svd(A)[2][-1]
             X = X[:3] / X[3]
-            res = [np.linalg.norm((proj[i] @ np.append(X, 1))[:2] / (proj[i] @ np.append(X, 1))[2] - xy)
-                   for i, xy in others]
-            if max(res) <= 1.0:
+            x = [proj[i] @ np.append(X, 1) for i, _ in others]
+            if max(np.linalg.norm(xi[:2] / xi[2] - xy) for xi, (_, xy) in zip(x, others)) <= 1.0:
                 x2.append(mine[0])
                 X3.append(X)
         if len(X3) < 6:
@@ -259,9 +266,7 @@ def images_limit(set_dir: Path, work: Path) -> dict:
         p = r["cam_from_world"]
         R, C = truth[im.name]
         Ce = -p.rotation.matrix().T @ p.translation + offset
-        d = np.linalg.norm(R.T @ p.rotation.matrix() - np.eye(3))
-        out[im.name] = {"pos_m": float(np.linalg.norm(Ce - C)),
-                        "rot_deg": float(np.degrees(2 * np.arcsin(min(1.0, d / (2 * np.sqrt(2)))))),
+        out[im.name] = {"pos_m": float(np.linalg.norm(Ce - C)), "rot_deg": rotation_deg(R, p.rotation.matrix()),
                         "n_points": len(X3), "n_inliers": int(r["num_inliers"])}
     return {"per_photo": out, "seconds": time.time() - t, "set_dir": set_dir}
 
