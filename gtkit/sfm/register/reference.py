@@ -205,7 +205,7 @@ class ReferenceBlock:
             return out
         # the poses the metadata gave led nowhere (a block GPS fit turned about its positions' line, an
         # attitude far off): the photos' own keypoints, as for photos without metadata
-        alt = place_unguided(self, seq, qrec, db, settings)
+        alt = place_unguided(self, seq, qrec, db, settings, why="matching around its metadata poses failed")
         far = self._far_from_gps(qrec, alt.sim) if alt.sim is not None else None
         if alt.sim is None or far is not None:
             out.reason += f"; matched without its metadata: {alt.reason or far}"

@@ -64,9 +64,11 @@ def rank_reference_photos(query: dict[str, np.ndarray], reference: dict[str, np.
     return out
 
 
-def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, settings) -> Bootstrap:
+def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, settings,
+                   why: str = "no GPS and no attitude") -> Bootstrap:
     """The sequence (its block ``qrec``, its feature database ``db``) placed in the reference block
-    ``ref`` (:class:`gtkit.sfm.register.reference.ReferenceBlock`) without any metadata."""
+    ``ref`` (:class:`gtkit.sfm.register.reference.ReferenceBlock`) without any metadata; ``why`` it is
+    matched so, for its log line and its photos' reasons."""
     u = settings.unguided
     names = sorted(im.name for im in qrec.images.values() if im.has_pose)
     refs = sorted(im.name for im in ref.rec.images.values() if im.has_pose)
@@ -102,8 +104,8 @@ def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, setti
                     kk.append(k)
             if len(kk) >= settings.cross.min_inliers:
                 found[n] = (Pose.from_pycolmap(im.cam_from_world()), np.array(X).reshape(-1, 3), np.array(kk, int))
-    log.info("sequence %s (no GPS, no attitude): %d of %d photos registered into the reference block by keypoint "
-             "matches with %s", seq, len(found), len(names), how)
+    log.info("sequence %s (%s): %d of %d photos registered into the reference block by keypoint "
+             "matches with %s", seq, why, len(found), len(names), how)
 
     def priors(name):
         return [(f"keypoint matches with {how}", found[name][0])] if name in found else []
@@ -114,6 +116,6 @@ def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, setti
     out = bootstrap_sequence(qrec, priors, match, settings)
     for n, r in out.photos.items():
         if n not in found and "reason" in r:
-            r["reason"] = (f"no GPS and no attitude, and fewer than {settings.cross.min_inliers} keypoint matches "
+            r["reason"] = (f"{why}, and fewer than {settings.cross.min_inliers} keypoint matches "
                            f"registered it into the reference block ({how})")
     return out
