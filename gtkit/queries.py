@@ -11,7 +11,9 @@ A query photo's intrinsics (:func:`query_cameras`), first found wins:
 2. the photo's own sequence SfM (``work/sfm_queries/<seq>/intrinsics.txt``: the photo, else a
    registered photo of the same camera in that sequence),
 3. the reference block's calibration of the same camera (``work/sfm_reference/intrinsics.txt``: a
-   reference photo with the same EXIF make, model, size and focal length),
+   reference photo with the same EXIF make, model, size and focal length; for photos without EXIF
+   camera identity, the reference's one camera of their size: the rule of
+   :func:`reference_calibrations`, which the query SfM follows too),
 4. the EXIF focal length: the 35 mm-equivalent (``f = f35 / 36 mm x longer side``, a 36 mm wide
    frame, as the sample sites and :mod:`gtkit.track.calibrate` take it), else the focal length in
    mm and the focal-plane resolution (``FocalPlaneXResolution``: pixels per sensor unit).
@@ -120,6 +122,45 @@ def _read(path: Path) -> dict[str, Camera]:
     return read_intrinsics(path) if path.is_file() else {}
 
 
+def _key(project: Project, name: str) -> tuple | None:
+    from .io.exif import read_photo_meta
+
+    try:
+        return camera_key(read_photo_meta(project.paths.images / name, require=()))
+    except GtkitError:
+        return None
+
+
+def reference_calibrations(project: Project, names: list[str]) -> tuple[dict[str, Camera], dict[str, str]]:
+    """({photo: the reference block's calibration of the same camera}, {photo: by what rule}) for
+    photos that are not reference photos. "The same camera": EXIF make, model, image size and focal
+    length equal; photos without EXIF camera identity (no make, model or focal: scanned or stripped
+    photos) are taken for the reference camera of their size where the reference block has exactly
+    one camera of that size without identity either ("same sensor"). The query SfM
+    (:mod:`gtkit.sfm.block_cameras`) and :func:`query_cameras` both follow this rule."""
+    f = project.paths.reference_intrinsics
+    if not f.is_file():
+        return {}, {}
+    ref = _read(f)
+    by_key: dict[tuple, list[tuple[str, Camera]]] = {}   # each distinct calibration with its first photo
+    for n, c in sorted(ref.items()):
+        k = _key(project, n)
+        if k is not None and all(c != d for _, d in by_key.setdefault(k, [])):
+            by_key[k].append((n, c))
+    cams, why = {}, {}
+    for n in names:
+        k = _key(project, n)
+        if k is None or k not in by_key:
+            continue
+        first, cam = by_key[k][0]
+        if k[0] or k[1]:
+            cams[n], why[n] = cam, f"same camera as {first} (EXIF make, model, size, focal)"
+        elif k[4] is None and len(by_key[k]) == 1:
+            cams[n], why[n] = cam, (f"same sensor as {first} (no EXIF camera identity; the reference's one camera "
+                                    "of this size)")
+    return cams, why
+
+
 def query_cameras(project: Project, names: list[str]) -> dict[str, QueryCamera]:
     """Each query photo's intrinsics and their source, in the order of the module doc; a photo
     with none is a :class:`GtkitError` naming it."""
@@ -129,21 +170,13 @@ def query_cameras(project: Project, names: list[str]) -> dict[str, QueryCamera]:
     rel = lambda p: p.relative_to(P.root).as_posix()  # noqa: E731
     override = _read(P.cameras)
     seq_cams: dict[str, dict[str, Camera]] = {}
-    ref_cams: dict[tuple, tuple[str, Camera]] | None = None
     metas: dict[str, object] = {}
+    ref = None
 
     def meta(name: str):
         if name not in metas:
             metas[name] = read_photo_meta(P.images / name)
         return metas[name]
-
-    def reference_by_camera() -> dict[tuple, tuple[str, Camera]]:
-        cams = _read(P.reference_intrinsics)
-        out: dict[tuple, tuple[str, Camera]] = {}
-        for n in sorted(cams):
-            if (P.images / n).is_file():
-                out.setdefault(camera_key(read_photo_meta(P.images / n)), (n, cams[n]))
-        return out
 
     out: dict[str, QueryCamera] = {}
     for n in names:
@@ -164,12 +197,11 @@ def query_cameras(project: Project, names: list[str]) -> dict[str, QueryCamera]:
             if same:
                 out[n] = QueryCamera(cams[same[0]], f"{rel(f)} (same camera as {same[0]})")
                 continue
-        if ref_cams is None:
-            ref_cams = reference_by_camera()
-        key = camera_key(meta(n))
-        hit = ref_cams.get(key) if key[0] or key[1] else None   # no make/model: no way to tell it is the same
-        if hit is not None and hit[1].width == meta(n).width and hit[1].height == meta(n).height:
-            out[n] = QueryCamera(hit[1], f"work/sfm_reference/intrinsics.txt (same camera as {hit[0]})")
+        if ref is None:   # read once, for every photo that gets this far
+            ref = reference_calibrations(project, [m for m in names if m not in out])
+        ref_cam, ref_why = ref
+        if n in ref_cam:   # the same camera or sensor, by the rule the SfM's own blocks follow
+            out[n] = QueryCamera(ref_cam[n], f"work/sfm_reference/intrinsics.txt ({ref_why[n]})")
             continue
         ex = exif_camera(P.images / n, meta(n))
         if ex is None:
