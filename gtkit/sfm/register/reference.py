@@ -23,7 +23,7 @@ from ..resect import candidate_priors
 from .bootstrap import Bootstrap, bootstrap_sequence
 from .clicked import _place
 from .settings import RegisterSettings
-from .unguided import place_unguided
+from .unguided import keypoint_poses, place_unguided
 
 log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
 
@@ -47,6 +47,7 @@ class ReferenceBlock:
         self.db = ref_db
         self.positions = PhotoPositions(project)
         self._points: ReferencePoints | None = None
+        self._left_out_keypoints: dict[str, tuple[dict, str]] = {}   # by sequence: keypoint_poses' answer
 
     @property
     def cache(self) -> dict:
@@ -87,24 +88,26 @@ class ReferenceBlock:
             out.append(Pose.from_center(q.R, np.array([C[0], C[1], q.center[2]])))
         return out
 
-    def solo_block(self, seq: str) -> pycolmap.Reconstruction | None:
+    def solo_block(self, seq: str) -> tuple[pycolmap.Reconstruction | None, str]:
         """A sequence whose SfM made no model: an empty block holding its camera (gtkit.queries'
         resolution: the reference block's calibration of the same camera, else EXIF), to which its
-        photos are added one by one as they are resected from automatic matches."""
+        photos are added one by one as they are resected from automatic matches; or (None, why not)."""
         from ...queries import query_cameras, query_photos
 
         names = query_photos(self.project, seq)
-        if not names or not (self.P.stage(QUERIES_STAGE) / seq / "database.db").is_file():
-            return None
+        if not names:
+            return None, f"no query photos in images/queries/{seq}/"
+        if not (self.P.stage(QUERIES_STAGE) / seq / "database.db").is_file():
+            return None, "no query-block features (run `gtkit sfm DIR --block queries`)"
         try:
             cams = query_cameras(self.project, names)
-        except GtkitError:
-            return None
+        except GtkitError as e:
+            return None, str(e)
         rec = pycolmap.Reconstruction()
         c = cams[names[0]].camera.to_pycolmap()
         c.camera_id = 1
         rec.add_camera_with_trivial_rig(c)
-        return rec
+        return rec, ""
 
     def left_out_matcher(self, seq: str):
         """``match(name, qrec) -> (Pose | None, n matches, reason)``: a photo of ``seq`` its SfM left out,
@@ -124,21 +127,55 @@ class ReferenceBlock:
                 for n in sorted((n for n in order if n != name), key=lambda m: abs(order.index(m) - k))[:2]]
         by_reference = self.neighbour_priors(name)
         priors = priors + by_reference
-        if not priors and not near:
-            return None, 0, "no GPS to guide matching"
         feats = photo_features(P.stage(QUERIES_STAGE) / seq / "database.db", name)
         if feats is None:
             return None, 0, "no features in its sequence's database"
         cam = Camera.from_pycolmap(qrec.cameras[sorted(qrec.cameras)[0]])
+        if not priors and not near:
+            return self._left_out_by_keypoints(seq, name, qrec, "no GPS to guide matching")
         found = [match_photo(p, cam, *feats, self.points(), settings.cross) for p in priors]
         pose, rows, _ = max(found, key=lambda f: len(f[1])) if found else (None, [], [])
         if pose is None and settings.bootstrap.enabled:   # a wider search around its own and its neighbours' poses
             guides = priors[:1] + near + [q for q in by_reference if q is not priors[0]]
             pose, rows = self._match_wider(guides, cam, feats)
         if pose is None:
-            return None, 0, (f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
-                             "points around its metadata pose" + (" or its neighbours' poses" if near else ""))
+            return self._left_out_by_keypoints(
+                seq, name, qrec, f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
+                "points around its metadata pose" + (" or its neighbours' poses" if near else ""))
         return pose, len(rows), ""
+
+    def _left_out_by_keypoints(self, seq: str, name: str, qrec: pycolmap.Reconstruction, why: str):
+        """(pose | None, n reference points it sees, reason) of a left-out photo that ``why`` could not be
+        matched around a pose: registered into the reference block by its keypoints
+        (:func:`gtkit.sfm.register.unguided.keypoint_poses`), once for every photo of ``seq`` its SfM left
+        out; refused where it lands farther than ``bootstrap.max_offset_m`` from the photo's GPS."""
+        settings = self.settings
+        if not settings.unguided.enabled:
+            return None, 0, why
+        if seq not in self._left_out_keypoints:
+            from ..resect import unregistered_photos
+
+            sdir = self.P.stage(QUERIES_STAGE) / seq
+            posed = {im.name for im in qrec.images.values() if im.has_pose}
+            names = sorted(set(unregistered_photos(sdir / "block.json")) - posed) or [name]
+            cam = Camera.from_pycolmap(qrec.cameras[sorted(qrec.cameras)[0]])
+            self._left_out_keypoints[seq] = keypoint_poses(self, names, {n: cam for n in names}, sdir / "database.db",
+                                                           settings, self.P.stage("register") / "unguided" /
+                                                           f"{seq}.left_out")
+            log.info("sequence %s: %d of %d photos its SfM left out registered into the reference block by "
+                     "keypoint matches with %s", seq, len(self._left_out_keypoints[seq][0]), len(names),
+                     self._left_out_keypoints[seq][1])
+        found, how = self._left_out_keypoints[seq]
+        if name not in found:
+            return None, 0, (f"{why}; fewer than {settings.cross.min_inliers} keypoint matches registered it into "
+                             f"the reference block ({how})")
+        pose, X, _ = found[name]
+        C, limit = self.gps_centre(name), settings.bootstrap.max_offset_m
+        if C is not None and np.linalg.norm(pose.center - C) > limit:
+            return None, 0, (f"{why}; keypoint matches ({how}) placed it {np.linalg.norm(pose.center - C):.0f} m "
+                             f"from its GPS position, more than [register.bootstrap] max_offset_m = {limit:g}: "
+                             "taken for a false match")
+        return pose, len(X), ""
 
     def _match_wider(self, guides: list[Pose], cam: Camera, feats):
         """(pose, matched rows) of the best match around ``guides``, wider and wider, at last over the

@@ -45,12 +45,14 @@ def place_sequences(ref: ReferenceBlock, seq_dirs: dict[str, Path], tiepoints: l
 def place_photo_by_photo(ref: ReferenceBlock, seq: str, d: Path, tiepoints: list[TiePoint], placed: Placed) -> None:
     """A sequence whose SfM made no model (e.g. photos held out of a flight, too far apart to match each
     other): each photo on its own, resected from automatic matches to the reference points."""
-    qrec = ref.solo_block(seq) if (d.parent / "block.json").is_file() else None
+    ran = (d.parent / "block.json").is_file()
+    qrec, no_block = ref.solo_block(seq) if ran else (None, "")
     res = resect_sequence(seq, qrec, d.parent / "block.json", ref.P.images, tiepoints, ref.place_clicks,
                           ref.settings.tie_max_px, ref.left_out_matcher(seq)) if qrec is not None else {}
     done = {n: r for n, r in res.items() if r["resected"]}
     if not done:
-        why = ("no query-block model (run `gtkit sfm DIR --block queries`)" if qrec is None else
+        why = ("no query-block model (run `gtkit sfm DIR --block queries`)" if not ran else
+               f"its SfM made no model and its photos cannot be placed one by one: {no_block}" if qrec is None else
                "its SfM made no model and none of its photos matched the reference points on its own"
                + (f" ({next(iter(res.values())).get('auto_reason')})" if res else ""))
         placed.report[seq] = {"status": "error", "error": why, "needs_clicks": qrec is not None,

@@ -9,6 +9,11 @@ Which reference photos: all of them where the block has at most ``max_exhaustive
 the ``top_k`` a bag of visual words over their SIFT descriptors ranks first for each query photo
 (:func:`rank_reference_photos`). Issue 55: before this, every such sequence was refused and asked
 for clicks, where one SfM of all photos registers it at 4-14 mm.
+
+A photo its sequence's SfM left out (or every photo of a sequence whose SfM made no model: two held-out
+photos too far apart to start one) is registered the same way (:func:`keypoint_poses`) where it has
+no GPS to guide its matching or that matching failed
+(:meth:`gtkit.sfm.register.reference.ReferenceBlock.match_left_out`).
 """
 from __future__ import annotations
 
@@ -64,17 +69,16 @@ def rank_reference_photos(query: dict[str, np.ndarray], reference: dict[str, np.
     return out
 
 
-def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, settings,
-                   why: str = "no GPS and no attitude") -> Bootstrap:
-    """The sequence (its block ``qrec``, its feature database ``db``) placed in the reference block
-    ``ref`` (:class:`gtkit.sfm.register.reference.ReferenceBlock`) without any metadata; ``why`` it is
-    matched so, for its log line and its photos' reasons."""
+def keypoint_poses(ref, names: list[str], cams: dict, db: Path, settings, work: Path
+                   ) -> tuple[dict[str, tuple[Pose, np.ndarray, np.ndarray]], str]:
+    """({photo: (pose, the reference 3D points it sees (n, 3), its keypoint indices)}, with which
+    reference photos) for the photos ``names`` (cameras ``cams``, features in ``db``) registered into
+    the reference block ``ref`` by keypoint matches, in folder ``work``: with every reference photo where
+    the block has at most ``unguided.max_exhaustive`` photos, else the ``top_k`` ranked first; and with
+    each other. A photo keeps its pose
+    where at least ``cross.min_inliers`` of its keypoints are reference points."""
     u = settings.unguided
-    names = sorted(im.name for im in qrec.images.values() if im.has_pose)
     refs = sorted(im.name for im in ref.rec.images.values() if im.has_pose)
-    if not u.enabled:
-        return Bootstrap(None, "its photos have no GPS and no attitude, and matching them to every reference "
-                               "photo is off ([register.unguided] enabled)", {})
     if len(refs) <= u.max_exhaustive:
         near = {n: refs for n in names}
         how = f"all {len(refs)} reference photos"
@@ -86,10 +90,9 @@ def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, setti
         how = f"the {u.top_k} of {len(refs)} reference photos ranked first by visual words"
     pairs = [(n, r) for n in names for r in near.get(n, [])]
     pairs += [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
-    cams = model_cameras(qrec)
     ext = register_into_reference(ref.rec, ref.db, {n: (cams[n], db) for n in names}, pairs,
-                                  ref.P.images, ref.P.stage("register") / "unguided" / seq,
-                                  num_threads=settings.num_threads, reproducible=settings.reproducible)
+                                  ref.P.images, work, num_threads=settings.num_threads,
+                                  reproducible=settings.reproducible)
     found: dict[str, tuple[Pose, np.ndarray, np.ndarray]] = {}
     if ext is not None:
         for n in names:
@@ -104,6 +107,20 @@ def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, setti
                     kk.append(k)
             if len(kk) >= settings.cross.min_inliers:
                 found[n] = (Pose.from_pycolmap(im.cam_from_world()), np.array(X).reshape(-1, 3), np.array(kk, int))
+    return found, how
+
+
+def place_unguided(ref, seq: str, qrec: pycolmap.Reconstruction, db: Path, settings,
+                   why: str = "no GPS and no attitude") -> Bootstrap:
+    """The sequence (its block ``qrec``, its feature database ``db``) placed in the reference block
+    ``ref`` (:class:`gtkit.sfm.register.reference.ReferenceBlock`) without any metadata; ``why`` it is
+    matched so, for its log line and its photos' reasons."""
+    names = sorted(im.name for im in qrec.images.values() if im.has_pose)
+    if not settings.unguided.enabled:
+        return Bootstrap(None, "its photos have no GPS and no attitude, and matching them to every reference "
+                               "photo is off ([register.unguided] enabled)", {})
+    found, how = keypoint_poses(ref, names, model_cameras(qrec), db, settings,
+                                ref.P.stage("register") / "unguided" / seq)
     log.info("sequence %s (%s): %d of %d photos registered into the reference block by keypoint "
              "matches with %s", seq, why, len(found), len(names), how)
 
