@@ -350,6 +350,8 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
             k2, k2_scatter, share = position_misfit(C, G, pred, acc)
     if n >= K2_MAX_PHOTOS:
         why = f"{n} photos in the block (a fit over {K2_MAX_PHOTOS} or more is not made)"
+    elif n < K2_MIN_PHOTOS:
+        why = f"{n} photos in the block (needs {K2_MIN_PHOTOS} with positions)"
     elif k2 is None:
         why = f"{len(keep)} photos with positions (needs {K2_MIN_PHOTOS})"
     elif k2_scatter >= K2_MAX_SCATTER_M:
