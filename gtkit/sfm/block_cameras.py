@@ -21,7 +21,6 @@ from pathlib import Path
 from ..camera import Camera
 from ..io.poses import read_intrinsics
 from ..project import Project
-from ..queries import reference_calibrations  # noqa: F401 (the rule, in the layer below)
 from .database import CameraGroup
 
 REFERENCE_STAGE = "sfm_reference"

@@ -36,8 +36,8 @@ from ..project import (IMAGE_EXT, Project, cpu_seconds, file_fingerprint, mark_s
                        stage_done, start_stage_clock)
 from . import quiet_colmap
 from ..progress import progress_bar
-from ..queries import QUERY_PATTERN
-from .block_cameras import REFERENCE_STAGE, camera_groups, reference_calibrations
+from ..queries import QUERY_PATTERN, reference_calibrations
+from .block_cameras import REFERENCE_STAGE, camera_groups
 from .database import (CameraGroup, FeatureSettings, MatchSettings, build_database, failure_reason,
                        image_diagnostics, match_pairs, read_descriptors)
 from .geometry import model_cameras, model_poses

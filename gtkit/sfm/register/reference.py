@@ -19,7 +19,7 @@ from ...project import Project
 from ..blocks import QUERIES_STAGE
 from ..crossmatch import ReferencePoints, match_photo, match_photo_wide, photo_features
 from ..geometry import model_cameras, model_poses
-from ..resect import candidate_priors
+from ..resect import candidate_priors, unregistered_photos
 from .bootstrap import Bootstrap, bootstrap_sequence
 from .clicked import _place
 from .settings import RegisterSettings
@@ -132,7 +132,7 @@ class ReferenceBlock:
             return None, 0, "no features in its sequence's database"
         cam = Camera.from_pycolmap(qrec.cameras[sorted(qrec.cameras)[0]])
         if not priors and not near:
-            return self._left_out_by_keypoints(seq, name, qrec, "no GPS to guide matching")
+            return self._left_out_by_keypoints(seq, name, qrec, cam, "no GPS to guide matching")
         found = [match_photo(p, cam, *feats, self.points(), settings.cross) for p in priors]
         pose, rows, _ = max(found, key=lambda f: len(f[1])) if found else (None, [], [])
         if pose is None and settings.bootstrap.enabled:   # a wider search around its own and its neighbours' poses
@@ -140,25 +140,22 @@ class ReferenceBlock:
             pose, rows = self._match_wider(guides, cam, feats)
         if pose is None:
             return self._left_out_by_keypoints(
-                seq, name, qrec, f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
+                seq, name, qrec, cam, f"fewer than {settings.cross.min_inliers} consistent matches to the reference "
                 "points around its metadata pose" + (" or its neighbours' poses" if near else ""))
         return pose, len(rows), ""
 
-    def _left_out_by_keypoints(self, seq: str, name: str, qrec: pycolmap.Reconstruction, why: str):
-        """(pose | None, n reference points it sees, reason) of a left-out photo that ``why`` could not be
-        matched around a pose: registered into the reference block by its keypoints
+    def _left_out_by_keypoints(self, seq: str, name: str, qrec: pycolmap.Reconstruction, cam: Camera, why: str):
+        """(pose | None, n reference points it sees, reason) of a left-out photo (its camera ``cam``, the
+        sequence's) that ``why`` could not be matched around a pose: registered into the reference block by its keypoints
         (:func:`gtkit.sfm.register.unguided.keypoint_poses`), once for every photo of ``seq`` its SfM left
         out; refused where it lands farther than ``bootstrap.max_offset_m`` from the photo's GPS."""
         settings = self.settings
         if not settings.unguided.enabled:
             return None, 0, why
         if seq not in self._left_out_keypoints:
-            from ..resect import unregistered_photos
-
             sdir = self.P.stage(QUERIES_STAGE) / seq
             posed = {im.name for im in qrec.images.values() if im.has_pose}
             names = sorted(set(unregistered_photos(sdir / "block.json")) - posed) or [name]
-            cam = Camera.from_pycolmap(qrec.cameras[sorted(qrec.cameras)[0]])
             self._left_out_keypoints[seq] = keypoint_poses(self, names, {n: cam for n in names}, sdir / "database.db",
                                                            settings, self.P.stage("register") / "unguided" /
                                                            f"{seq}.left_out")
@@ -170,11 +167,9 @@ class ReferenceBlock:
             return None, 0, (f"{why}; fewer than {settings.cross.min_inliers} keypoint matches registered it into "
                              f"the reference block ({how})")
         pose, X, _ = found[name]
-        C, limit = self.gps_centre(name), settings.bootstrap.max_offset_m
-        if C is not None and np.linalg.norm(pose.center - C) > limit:
-            return None, 0, (f"{why}; keypoint matches ({how}) placed it {np.linalg.norm(pose.center - C):.0f} m "
-                             f"from its GPS position, more than [register.bootstrap] max_offset_m = {limit:g}: "
-                             "taken for a false match")
+        far = self._far_from_gps({name: pose.center})
+        if far:
+            return None, 0, f"{why}; keypoint matches ({how}) {far}"
         return pose, len(X), ""
 
     def _match_wider(self, guides: list[Pose], cam: Camera, feats):
@@ -243,7 +238,9 @@ class ReferenceBlock:
         # the poses the metadata gave led nowhere (a block GPS fit turned about its positions' line, an
         # attitude far off): the photos' own keypoints, as for photos without metadata
         alt = place_unguided(self, seq, qrec, db, settings, why="matching around its metadata poses failed")
-        far = self._far_from_gps(qrec, alt.sim) if alt.sim is not None else None
+        far = (self._far_from_gps({im.name: alt.sim * im.projection_center() for im in qrec.images.values()
+                                   if im.has_pose}) if alt.sim is not None else None)
+        far = f"its photos were {far}" if far else None
         if alt.sim is None or far is not None:
             out.reason += f"; matched without its metadata: {alt.reason or far}"
             return out
@@ -252,15 +249,16 @@ class ReferenceBlock:
         alt.metadata_failed = out.reason
         return alt
 
-    def _far_from_gps(self, qrec: pycolmap.Reconstruction, sim: pycolmap.Sim3d) -> str | None:
-        """Why a placement found without the metadata contradicts the photos' GPS positions (their median
-        distance from them over ``bootstrap.max_offset_m``: repeated texture matched the wrong place, as
-        on the tiny sample's 8-photo block, 111-134 m off), else None."""
-        d = [float(np.linalg.norm(np.asarray(sim * im.projection_center()) - c)) for im in qrec.images.values()
-             if im.has_pose and (c := self.gps_centre(im.name)) is not None]
+    def _far_from_gps(self, placed: dict[str, np.ndarray]) -> str | None:
+        """Why photos placed without their metadata (``placed``: {photo: centre}) contradict their GPS
+        positions (the median distance from them over ``bootstrap.max_offset_m``: repeated texture
+        matched the wrong place, as on the tiny sample's 8-photo block, 111-134 m off), else None."""
+        d = [float(np.linalg.norm(np.asarray(x) - c)) for n, x in placed.items()
+             if (c := self.gps_centre(n)) is not None]
         limit = self.settings.bootstrap.max_offset_m
         if d and np.median(d) > limit:
-            return (f"its photos were placed {np.median(d):.0f} m (median) from their GPS positions, more than "
+            return (f"placed {np.median(d):.0f} m{' (median)' if len(d) > 1 else ''} from "
+                    f"{'their GPS positions' if len(d) > 1 else 'its GPS position'}, more than "
                     f"[register.bootstrap] max_offset_m = {limit:g}: taken for a false match")
         return None
 
