@@ -92,10 +92,13 @@ def _copy_features(src: Path, names: list[str], dst: pycolmap.Database, ids: dic
 
 
 def extended_database(ref_db: Path, photos: dict[str, tuple[Camera, Path]], pairs: list[tuple[str, str]],
-                      image_root: Path, work: Path, match: MatchSettings | None = None, num_threads: int = 2) -> Path:
+                      image_root: Path, work: Path, match: MatchSettings | None = None, num_threads: int = 2,
+                      shared: dict[int, Camera] | None = None) -> Path:
     """A copy of the reference database in ``work`` (emptied first) with ``photos`` ({name: (camera, its
     sequence's feature database)}) added, their features copied (not extracted again), and the name
-    ``pairs`` matched keypoint to keypoint. Returns its path."""
+    ``pairs`` matched keypoint to keypoint. ``shared``: reference cameras ({id: calibration}) a photo
+    whose camera is that very calibration takes as its own (one camera for both, not a copy). Returns
+    its path."""
     work = Path(work)
     if work.exists():
         shutil.rmtree(work)
@@ -103,19 +106,22 @@ def extended_database(ref_db: Path, photos: dict[str, tuple[Camera, Path]], pair
     db_path = work / "database.db"
     shutil.copy(ref_db, db_path)
     names = sorted(photos)
+
+    def key_of(cam: Camera) -> tuple:
+        return cam.model, cam.width, cam.height, tuple(np.round(cam.params, 6))
+
     with pycolmap.Database.open(db_path) as db:
-        cam_ids: dict[tuple, int] = {}
+        cam_ids: dict[tuple, int] = {key_of(c): cid for cid, c in sorted((shared or {}).items(), reverse=True)}
         for n in names:
-            cam = photos[n][0]
-            key = (cam.model, cam.width, cam.height, tuple(np.round(cam.params, 6)))
+            key = key_of(photos[n][0])
             if key not in cam_ids:
+                cam = photos[n][0]
                 pc = cam.to_pycolmap()
                 pc.has_prior_focal_length = True
                 cam_ids[key] = db.write_camera(pc)
     by_cam: dict[int, list[str]] = {}
     for n in names:
-        cam = photos[n][0]
-        by_cam.setdefault(cam_ids[(cam.model, cam.width, cam.height, tuple(np.round(cam.params, 6)))], []).append(n)
+        by_cam.setdefault(cam_ids[key_of(photos[n][0])], []).append(n)
     for cid, group in by_cam.items():
         ro = pycolmap.ImageReaderOptions()
         ro.existing_camera_id = cid

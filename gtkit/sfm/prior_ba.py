@@ -101,14 +101,18 @@ def moved_off_positions(report: dict) -> bool:
 def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndarray], outliers: set[str],
                       accuracy: dict[str, float] | None = None, min_sigma_m: float = 0.005,
                       max_iterations: int = 50, num_threads: int = -1, seeding: bool = False,
-                      sigma_hv: tuple[float, float] | None = None) -> dict:
+                      sigma_hv: tuple[float, float] | None = None,
+                      free_intrinsics: dict[int, list[str]] | None = None) -> dict:
     """Pose-prior BA of a georegistered block (see the module docstring); returns its report.
     ``seeding``: the seeded mapper's seeding BA (gtkit.sfm.seeded), as COLMAP runs it: every point kept
     (they are triangulated from the priors and filtered by the mapper after it), its stop and its choice
     of linear solver (the mapping unchanged by what is tuned here for the georegistration).
     ``sigma_hv``: the priors' horizontal and vertical sigma where a position states no accuracy (default:
-    the block's scatter about its positions, as above)."""
+    the block's scatter about its positions, as above). ``free_intrinsics``: {camera id: the parts this
+    BA refines, "focal", "principal point", "distortion"}; every other camera's intrinsics held (default:
+    all held)."""
     accuracy = accuracy or {}
+    free_intrinsics = {c: p for c, p in (free_intrinsics or {}).items() if p and c in rec.cameras}
     names = sorted(im.name for im in rec.images.values()
                    if im.has_pose and im.name in positions and im.name not in outliers
                    and np.all(np.isfinite(positions[im.name])))
@@ -127,7 +131,10 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
             coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN, corr_data_id=by_name[n].data_id))
     opts = pycolmap.BundleAdjustmentOptions()
     opts.print_summary = False
-    opts.refine_focal_length = opts.refine_principal_point = opts.refine_extra_params = False
+    parts = {p for v in free_intrinsics.values() for p in v}
+    opts.refine_focal_length = "focal" in parts
+    opts.refine_principal_point = "principal point" in parts
+    opts.refine_extra_params = "distortion" in parts
     opts.ceres.solver_options.max_num_iterations = max_iterations
     # stop once a step changes the cost by less than 1e-7 of itself (COLMAP sets 0: it went on until the
     # gradient was 1e-4): small seed 0 converged in 3 steps instead of 6, 2.8 -> 2.1 CPU s, cameras within
@@ -142,6 +149,9 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
     cfg = pycolmap.BundleAdjustmentConfig()
     for iid in rec.reg_image_ids():
         cfg.add_image(iid)
+    for cid in rec.cameras:
+        if cid not in free_intrinsics:
+            cfg.set_constant_cam_intrinsics(cid)
     prior_opts = pycolmap.PosePriorBundleAdjustmentOptions()
     # its alignment RANSAC seeded: pycolmap's -1 draws from the calling thread's generator, whose state
     # depends on what ran before in the process (tiny seed 0: three reference SfMs in one process gave

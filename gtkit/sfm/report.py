@@ -19,6 +19,18 @@ from .register import STAGE as REGISTER_STAGE
 from . import registration_record as record
 
 
+def _recalibrated(co: dict) -> str:
+    """'; the self-calibrated reference camera calibrated again ...' of a co-estimation record ('' where not)."""
+    words = []
+    for c in (co.get("calibrated") or {}).values():
+        b, a = c["before"], c["after"]
+        pp = float(np.hypot(a[1] - b[1], a[2] - b[2])) if len(a) > 2 and "principal point" in c["parts"] else None
+        words.append(f"focal {b[0]:.0f} -> {a[0]:.0f} px" + (f", principal point moved {pp:.0f} px" if pp is not None else ""))
+    n = len(co.get("joined_reference_camera") or [])
+    return (f"; the self-calibrated reference camera calibrated again with {n} query photos of it ("
+            + "; ".join(words) + ")") if words else ""
+
+
 def _load(p: Path):
     """A stage's record, None where the stage has not run; a record that cannot be read is a one-line
     error naming it (the report never reads a damaged record as "not run")."""
@@ -138,7 +150,8 @@ def _markdown(rep: dict, folder: Path, checks: dict) -> str:
     if co:   # the query photos adjusted together with a small reference block (gtkit.sfm.register.coestimate)
         L.append("| query photos co-estimated with the reference block | "
                  + (f"{co['n_photos']} photos, moved {1000 * co['query_moved_median_m']:.1f} mm (median) from the joint "
-                    f"adjustment, the move added to their sigma |" if co.get("applied") else f"no: {co.get('reason')} |"))
+                    f"adjustment, the move added to their sigma{_recalibrated(co)} |" if co.get("applied")
+                    else f"no: {co.get('reason')} |"))
     seqs = rep.get("sequences") or {}
     if seqs:
         n = record.counts(seqs)

@@ -12,7 +12,14 @@ photo joins the reference block at its pseudo-GT pose:
 - the block's points completed with its observations and new points triangulated (COLMAP's point
   triangulator, the reference points kept, every pose held);
 - the whole block adjusted again with the reference photos held by their positions as the reference
-  stage held them (:func:`gtkit.sfm.prior_ba.hold_by_positions`, its sigmas), the intrinsics held.
+  stage held them (:func:`gtkit.sfm.prior_ba.hold_by_positions`, its sigmas), the intrinsics held,
+  except a camera the reference SfM calibrated itself (no cameras.txt, no EXIF focal: focal, principal
+  point and distortion): the query photos of the same camera (:func:`gtkit.queries.reference_calibrations`)
+  join the block as that camera, each first resected again with it, and the block's BA calibrates it
+  again from every photo, as one SfM of all the photos does. A few reference photos alone can misjudge
+  it: entry-P10's every second photo split every second (3 reference photos sharing 138 points) put the
+  principal point 74 and 139 px off; the 2 query photos placed with it were 1.02 m off with a 0.31 m
+  sigma. Calibrated again with them: 5 px off, the query photos 5.7 mm off (one SfM of all 5 photos: 6.8).
 
 The query photos' poses from that adjustment are the pseudo-GT. Each one's move from the joint
 adjustment's pose is added to its sigma, a systematic term along the move (two estimates of one photo
@@ -75,12 +82,14 @@ def _block_with_photos(ref_rec: pycolmap.Reconstruction, db_path: Path, poses: d
 
 
 def _completed_block(ref_rec, ref_db: Path, photos: dict, poses: dict[str, Pose], image_root: Path, work: Path,
-                     settings: CoestimateSettings, num_threads: int, reproducible: bool) -> pycolmap.Reconstruction:
+                     settings: CoestimateSettings, num_threads: int, reproducible: bool,
+                     shared: dict[int, Camera]) -> pycolmap.Reconstruction:
     """The reference block with the query photos at ``poses``, matched with their nearest reference views
-    and their sequence, its tracks completed and new points triangulated, every pose held."""
+    and their sequence, its tracks completed and new points triangulated, every pose held; a query photo
+    whose camera is a ``shared`` reference calibration takes that camera."""
     pairs = photo_pairs(ref_rec, poses, settings.neighbours)
     db_path = extended_database(ref_db, {n: (v[1], v[2]) for n, v in photos.items()}, pairs, image_root, work,
-                                num_threads=num_threads)
+                                num_threads=num_threads, shared=shared)
     rec = _block_with_photos(ref_rec, db_path, poses)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = num_threads
@@ -89,43 +98,90 @@ def _completed_block(ref_rec, ref_db: Path, photos: dict, poses: dict[str, Pose]
                                        options=opts, refine_intrinsics=False)
 
 
+def _is_one_of(cam: Camera, cams: dict[int, Camera]) -> bool:
+    return any(cam.model == c.model and (cam.width, cam.height) == (c.width, c.height)
+               and np.allclose(cam.params, c.params, rtol=1e-9, atol=1e-9) for c in cams.values())
+
+
+def _resected_with(rec: pycolmap.Reconstruction, cams: dict[str, Camera], poses: dict[str, Pose]
+                   ) -> dict[str, Pose]:
+    """``poses``, those of the photos of ``cams`` resected again with that camera on their points in the
+    completed block ``rec`` (where that fails, the pose stays)."""
+    out = dict(poses)
+    opts = pycolmap.AbsolutePoseEstimationOptions()
+    opts.ransac.random_seed = 0
+    opts.ransac.max_error = 4.0
+    for n, cam in sorted(cams.items()):
+        im = rec.find_image_with_name(n)
+        if im is None:
+            continue
+        obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
+        if len(obs) < 12:
+            continue
+        r = pycolmap.estimate_and_refine_absolute_pose(np.array([o[0] for o in obs]), np.array([o[1] for o in obs]),
+                                                       cam.to_pycolmap(), opts)
+        if r is not None:
+            out[n] = Pose.from_pycolmap(r["cam_from_world"])
+    return out
+
+
 def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str, tuple[Pose, Camera, Path]],
                priors: dict, image_root: Path, work: Path, settings: CoestimateSettings,
-               num_threads: int = 2, reproducible: bool = True) -> tuple[dict[str, Pose], dict]:
-    """({photo: its co-estimated pose (no covariance)}, record) for ``photos`` ({name: (joint pose,
-    camera, its sequence's feature database)}); ``priors``: the reference photos' positions as the
-    reference stage held them: {"positions", "accuracy", "outliers", "sigma_hv"}. An empty dict of poses
-    where it could not be done (the record says why). The co-estimated block is left in ``work/model``."""
+               num_threads: int = 2, reproducible: bool = True, self_calibrated: dict[int, list[str]] | None = None,
+               same_camera: dict[str, Camera] | None = None) -> tuple[dict[str, Pose], dict[str, Camera], dict]:
+    """({photo: its co-estimated pose (no covariance)}, {photo: its camera, where the block's BA refined
+    it}, record) for ``photos`` ({name: (joint pose, camera, its sequence's feature database)});
+    ``priors``: the reference photos' positions as the reference stage held them: {"positions",
+    "accuracy", "outliers", "sigma_hv"}; ``self_calibrated``: the reference cameras its SfM calibrated
+    ({id: the parts it refined}): the block's BA refines them again, with every query photo of the same
+    camera (``same_camera``: {photo: the reference calibration of its camera}) as that camera. Empty dicts where it could not be done (the record says why). The
+    co-estimated block is left in ``work/model``."""
     photos = {n: v for n, v in photos.items() if Path(v[2]).is_file()}
     if not photos:
-        return {}, {"applied": False, "reason": "no query photo with a feature database"}
-    poses = {n: v[0] for n, v in photos.items()}
+        return {}, {}, {"applied": False, "reason": "no query photo with a feature database"}
+    poses = joint = {n: v[0] for n, v in photos.items()}
+    free = {c: p for c, p in (self_calibrated or {}).items() if p and c in ref_rec.cameras}
+    shared = {c: Camera.from_pycolmap(ref_rec.cameras[c]) for c in free}
+    joins = {n: c for n, c in (same_camera or {}).items() if n in photos and _is_one_of(c, shared)}
     try:
         rec = _completed_block(ref_rec, ref_db, photos, poses, image_root, Path(work), settings, num_threads,
-                               reproducible)
+                               reproducible, {})
+        if joins:
+            # the joint poses were estimated with the query photos' own calibration: each photo that joins
+            # as a reference camera is resected again with it on the completed block's points first
+            poses = _resected_with(rec, joins, poses)
+            photos = {n: (v[0], joins.get(n, v[1]), v[2]) for n, v in photos.items()}
+            rec = _completed_block(ref_rec, ref_db, photos, poses, image_root, Path(work), settings, num_threads,
+                                   reproducible, shared)
     except (RuntimeError, ValueError) as e:   # COLMAP's checks: the joint poses stay, the record says why
-        return {}, {"applied": False, "reason": f"the block with the query photos could not be made ({e})"}
+        return {}, {}, {"applied": False, "reason": f"the block with the query photos could not be made ({e})"}
     n_before = ref_rec.num_points3D()
     centres = {im.name: im.projection_center() for im in rec.images.values() if im.has_pose}
     # a reference photo the reference stage did not hold (off its position) stays out of the priors here too
     off = {n for n, p in priors["positions"].items() if n in centres and np.linalg.norm(centres[n] - p)
            > 3.0 * max(list(priors["sigma_hv"]) + [priors["accuracy"].get(n) or 0.0])}
+    free = {c: p for c, p in free.items() if any(im.camera_id == c for n in photos
+                                                 if (im := rec.find_image_with_name(n)) is not None)}
+    params_before = {c: np.array(rec.cameras[c].params) for c in free}
     held = hold_by_positions(rec, priors["positions"], set(priors["outliers"]) | off, priors["accuracy"],
-                             num_threads=ba_threads(num_threads, reproducible), sigma_hv=tuple(priors["sigma_hv"]))
+                             num_threads=ba_threads(num_threads, reproducible), sigma_hv=tuple(priors["sigma_hv"]),
+                             free_intrinsics=free)
     if not held.get("applied") or moved_off_positions(held):
         res = held.get("residual_median_m") or {}
-        return {}, {"applied": False, "reason": "the block's BA with the query photos "
+        return {}, {}, {"applied": False, "reason": "the block's BA with the query photos "
                     + (held.get("reason") or f"moved it off its positions (residual median {res['before']:.3f} -> "
                                               f"{res['after']:.3f} m)")}
-    out, moved = {}, {}
+    out, moved, cams = {}, {}, {}
     for n in sorted(poses):
         im = rec.find_image_with_name(n)
         if im is None or not im.has_pose:
             continue
         out[n] = Pose.from_pycolmap(im.cam_from_world())
-        moved[n] = float(np.linalg.norm(out[n].center - poses[n].center))
+        moved[n] = float(np.linalg.norm(out[n].center - joint[n].center))
+        if im.camera_id in free:
+            cams[n] = Camera.from_pycolmap(rec.cameras[im.camera_id])
     if not out:
-        return {}, {"applied": False, "reason": "no query photo kept a pose in the block's BA"}
+        return {}, {}, {"applied": False, "reason": "no query photo kept a pose in the block's BA"}
     ref_moved = []
     for im in rec.images.values():
         before = ref_rec.find_image_with_name(im.name)
@@ -139,11 +195,14 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
                "reference_moved_median_m": float(np.median(ref_moved)) if ref_moved else None,
                "prior_ba": {k: held[k] for k in ("n_priors", "sigma_h_m", "sigma_v_m", "residual_median_m", "converged",
                                                  "iterations", "seconds") if k in held},
-               "moved_m": moved}
+               "moved_m": moved,
+               "calibrated": {str(c): {"parts": free[c], "before": [float(v) for v in params_before[c]],
+                                       "after": [float(v) for v in rec.cameras[c].params]} for c in free},
+               "joined_reference_camera": sorted(cams)}
     log.info("query photos co-estimated with the reference block: %d photos, moved %.1f mm (median) from the joint "
              "adjustment, reference photos %.1f mm", len(out), 1000 * (rec_out["query_moved_median_m"] or 0.0),
              1000 * (rec_out["reference_moved_median_m"] or 0.0))
-    return out, rec_out
+    return out, cams, rec_out
 
 
 def transported(cov: np.ndarray, old: Pose, new: Pose) -> np.ndarray:

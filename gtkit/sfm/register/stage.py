@@ -14,6 +14,7 @@ from ...io.atomic import read_json_object
 from ...io.tiepoints import read_tiepoints
 from ...photo_positions import positions_and_accuracy
 from ...project import Project, file_fingerprint, stage_done, start_stage_clock
+from ...queries import reference_calibrations
 from .. import quiet_colmap
 from ..blocks import QUERIES_STAGE, REFERENCE_STAGE
 from ..crossmatch import cross_matches, reference_point_of
@@ -213,6 +214,13 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
                                                        P.stage(REFERENCE_STAGE) / "model", settings.sigma, sides,
                                                        ref_positions_of)
     poses, result["coestimation"] = _coestimated(project, ref, placed, poses, cams, covs, per_image, floors, out)
+    joined = set(result["coestimation"].get("joined_reference_camera") or [])
+    for q in blocks:
+        c = placed.report[q].get("calibration")
+        if c and joined and all(n in joined for n in poses if n.startswith(f"queries/{q}/")):
+            c["joint_source"] = c["source"]
+            c["source"] = ("the reference block's camera, calibrated again with the reference photos and the query "
+                           "photos together (co-estimated)")
     for n in unverify_uninformative(per_image):
         log.warning("%s: unverified: %s", n, per_image[n]["unverified"])
     tie_rows, bad = tie_table(j, clicks, placed.statuses, dropped, placed.report, prefixes)
@@ -243,12 +251,19 @@ def _coestimated(project: Project, ref: ReferenceBlock, placed: Placed, poses: d
         return poses, {"applied": False, "reason": why}
     priors = {"positions": positions, "accuracy": accuracy, "sigma_hv": (held["sigma_h_m"], held["sigma_v_m"]),
               "outliers": (block.get("georegistration") or {}).get("outliers") or []}
+    self_calibrated = {int(c): v.get("refined", []) for c, v in (block.get("intrinsics") or {}).items()
+                       if "principal point" in v.get("refined", [])}
+    # a photo of the same camera as a self-calibrated reference camera joins the block as that camera:
+    # the block's BA calibrates it from every photo, as one SfM of all the photos would
+    same = reference_calibrations(project, sorted(poses))[0] if self_calibrated else {}
     photos = {n: (p, cams[n], project.paths.stage(QUERIES_STAGE) / n.split("/")[1] / "database.db")
               for n, p in poses.items()}
-    moved_to, record = coestimate(ref.rec, ref.db, photos, priors, project.paths.images, out / "coestimate",
-                                  settings.coestimate, num_threads=settings.num_threads,
-                                  reproducible=settings.reproducible)
+    moved_to, calibrated, record = coestimate(ref.rec, ref.db, photos, priors, project.paths.images,
+                                              out / "coestimate", settings.coestimate,
+                                              num_threads=settings.num_threads, reproducible=settings.reproducible,
+                                              self_calibrated=self_calibrated, same_camera=same)
     if not moved_to:
         log.warning("query photos not co-estimated with the reference block: %s", record.get("reason"))
         return poses, record
+    cams.update(calibrated)
     return carry_over(poses, covs, per_image, floors, moved_to), record
