@@ -27,8 +27,10 @@ def _recalibrated(co: dict) -> str:
         pp = float(np.hypot(a[1] - b[1], a[2] - b[2])) if len(a) > 2 and "principal point" in c["parts"] else None
         words.append(f"focal {b[0]:.0f} -> {a[0]:.0f} px" + (f", principal point moved {pp:.0f} px" if pp is not None else ""))
     n = len(co.get("joined_reference_camera") or [])
-    return (f"; the self-calibrated reference camera calibrated again with {n} query photos of it ("
-            + "; ".join(words) + ")") if words else ""
+    nj = co.get("not_joined_reference_camera")
+    return ((f"; the self-calibrated reference camera calibrated again with {n} query photos of it ("
+             + "; ".join(words) + ")") if words else "") + (
+        f"; the query photos kept their own camera, not the reference's: {nj['why']}" if nj else "")
 
 
 def _load(p: Path):

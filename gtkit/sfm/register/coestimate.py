@@ -40,16 +40,19 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+from scipy.stats import chi2
 
 from ...camera import Camera
 from ...determinism import ba_threads, single_thread_mapper
 from ...pose import Pose, skew
 from ..extend_reference import extended_database, photo_pairs
 from ..prior_ba import hold_by_positions, moved_off_positions
+from .real_photo_terms import block_covariance
 from .settings import CoestimateSettings
 from .uncertainty import position_sigma, with_centre_covariance
 
 log = logging.getLogger(__package__)   # the stage's log: gtkit.sfm.register
+CALIBRATION_AGREES = 0.999   # the chi-square quantile a calibration change must stay within (_calibration_check)
 
 
 def why_not(ref_rec: pycolmap.Reconstruction, held: dict | None, settings: CoestimateSettings) -> str | None:
@@ -125,6 +128,50 @@ def _resected_with(rec: pycolmap.Reconstruction, cams: dict[str, Camera], poses:
     return out
 
 
+def _calibration_check(ref_rec: pycolmap.Reconstruction, free: dict[int, list[str]], joined: pycolmap.Reconstruction
+                       ) -> dict:
+    """{camera id: its calibration before and after the block's BA with the query photos of it, the change's
+    squared Mahalanobis distance ``d2`` in the reference block's own covariance of it (at 1 px; None where
+    that is not known) and its limit (chi-square at 99.9 %, one degree of freedom a parameter)}. The same
+    camera moves within what the reference photos left open (the shared sets' 8 self-calibrated cases:
+    d2 0.2-5.0, the 3-photo block 7.1); another camera of the same size (10 % longer focal) drags it far
+    outside (1,262)."""
+    own = pycolmap.Reconstruction(ref_rec)
+    cov = block_covariance(own, sorted(own.reg_image_ids()), free)
+    out: dict = {}
+    for c, parts in free.items():
+        before, after = np.array(ref_rec.cameras[c].params), np.array(joined.cameras[c].params)
+        d = after - before
+        C = cov.get_other_params_cov(own.cameras[c].params) if cov is not None else None
+        d2 = None
+        if C is not None and C.shape == (len(d), len(d)) and np.all(np.isfinite(C)):
+            try:
+                d2 = float(d @ np.linalg.solve(C, d))
+            except np.linalg.LinAlgError:
+                d2 = None
+        out[c] = {"parts": parts, "before": [float(v) for v in before], "after": [float(v) for v in after],
+                  "d2": d2, "limit": float(chi2.ppf(CALIBRATION_AGREES, len(d)))}
+    return out
+
+
+def _why_not_joined(held: dict, calibration: dict) -> str | None:
+    """Why the block with the query photos as the reference camera is not the one kept, or None."""
+    if not held.get("applied") or moved_off_positions(held):
+        res = held.get("residual_median_m") or {}
+        return "its BA " + (held.get("reason") or f"moved the block off its positions (residual median "
+                                                  f"{res['before']:.3f} -> {res['after']:.3f} m)")
+    for c, v in calibration.items():
+        if not isinstance(c, int):
+            continue
+        if v["d2"] is None:
+            return f"camera {c}: the reference block's own uncertainty of its calibration could not be computed"
+        if v["d2"] > v["limit"]:
+            return (f"camera {c}: the calibration it gives (focal {v['after'][0]:.0f} px) is not the reference "
+                    f"photos' own (focal {v['before'][0]:.0f} px; change {v['d2']:.0f} in its own variance, limit "
+                    f"{v['limit']:.0f}): another camera of the same size")
+    return None
+
+
 def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str, tuple[Pose, Camera, Path]],
                priors: dict, image_root: Path, work: Path, settings: CoestimateSettings,
                num_threads: int = 2, reproducible: bool = True, self_calibrated: dict[int, list[str]] | None = None,
@@ -146,13 +193,14 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
     try:
         rec = _completed_block(ref_rec, ref_db, photos, poses, image_root, Path(work), settings, num_threads,
                                reproducible, {})
+        joined = None
         if joins:
             # the joint poses were estimated with the query photos' own calibration: each photo that joins
             # as a reference camera is resected again with it on the completed block's points first
-            poses = _resected_with(rec, joins, poses)
-            photos = {n: (v[0], joins.get(n, v[1]), v[2]) for n, v in photos.items()}
-            rec = _completed_block(ref_rec, ref_db, photos, poses, image_root, Path(work), settings, num_threads,
-                                   reproducible, shared)
+            again = _resected_with(rec, joins, poses)
+            joined = _completed_block(ref_rec, ref_db, {n: (v[0], joins.get(n, v[1]), v[2]) for n, v in photos.items()},
+                                      again, image_root, Path(work) / "joined", settings, num_threads, reproducible,
+                                      shared)
     except (RuntimeError, ValueError) as e:   # COLMAP's checks: the joint poses stay, the record says why
         return {}, {}, {"applied": False, "reason": f"the block with the query photos could not be made ({e})"}
     n_before = ref_rec.num_points3D()
@@ -160,12 +208,27 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
     # a reference photo the reference stage did not hold (off its position) stays out of the priors here too
     off = {n for n, p in priors["positions"].items() if n in centres and np.linalg.norm(centres[n] - p)
            > 3.0 * max(list(priors["sigma_hv"]) + [priors["accuracy"].get(n) or 0.0])}
-    free = {c: p for c, p in free.items() if any(im.camera_id == c for n in photos
-                                                 if (im := rec.find_image_with_name(n)) is not None)}
-    params_before = {c: np.array(rec.cameras[c].params) for c in free}
-    held = hold_by_positions(rec, priors["positions"], set(priors["outliers"]) | off, priors["accuracy"],
-                             num_threads=ba_threads(num_threads, reproducible), sigma_hv=tuple(priors["sigma_hv"]),
-                             free_intrinsics=free)
+
+    def adjusted(block, free_intrinsics):
+        return hold_by_positions(block, priors["positions"], set(priors["outliers"]) | off, priors["accuracy"],
+                                 num_threads=ba_threads(num_threads, reproducible),
+                                 sigma_hv=tuple(priors["sigma_hv"]), free_intrinsics=free_intrinsics)
+
+    calibration, free = {}, {c: p for c, p in free.items() if joined is not None
+                             and any(im.camera_id == c for n in joins if (im := joined.find_image_with_name(n)))}
+    if free:
+        held = adjusted(joined, free)
+        calibration = _calibration_check(ref_rec, free, joined)
+        calibration["joined"] = sorted(joins)
+        why = _why_not_joined(held, calibration)
+        if why is None:
+            rec = joined
+        else:
+            calibration["not_joined"] = why
+            log.warning("query photos not co-estimated as the reference camera: %s; as their own cameras, held", why)
+            free = {}
+    if not free:
+        held = adjusted(rec, None)
     if not held.get("applied") or moved_off_positions(held):
         res = held.get("residual_median_m") or {}
         return {}, {}, {"applied": False, "reason": "the block's BA with the query photos "
@@ -196,9 +259,12 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
                "prior_ba": {k: held[k] for k in ("n_priors", "sigma_h_m", "sigma_v_m", "residual_median_m", "converged",
                                                  "iterations", "seconds") if k in held},
                "moved_m": moved,
-               "calibrated": {str(c): {"parts": free[c], "before": [float(v) for v in params_before[c]],
-                                       "after": [float(v) for v in rec.cameras[c].params]} for c in free},
+               "calibrated": {str(c): calibration[c] for c in free},
                "joined_reference_camera": sorted(cams)}
+    if calibration.get("not_joined"):
+        rec_out["not_joined_reference_camera"] = {"photos": calibration["joined"], "why": calibration["not_joined"],
+                                                  "check": {str(c): v for c, v in calibration.items()
+                                                            if isinstance(c, int)}}
     log.info("query photos co-estimated with the reference block: %d photos, moved %.1f mm (median) from the joint "
              "adjustment, reference photos %.1f mm", len(out), 1000 * (rec_out["query_moved_median_m"] or 0.0),
              1000 * (rec_out["reference_moved_median_m"] or 0.0))

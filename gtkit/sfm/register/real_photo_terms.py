@@ -274,6 +274,36 @@ def refined_intrinsics(model_dir: Path) -> dict[int, list[str]]:
     return {int(c): list(v.get("refined", [])) for c, v in intr.items()}
 
 
+def block_covariance(rec: pycolmap.Reconstruction, ids: list[int], refined: dict[int, list[str]]):
+    """pycolmap's BA covariance (at 1 px) of the block ``rec`` over its photos ``ids`` (points
+    eliminated, the gauge held by three points), with the lens parameters of ``refined`` ({camera id:
+    "focal", "principal point", "distortion"}) free, the other cameras' held; taken at the block's
+    solution (one BA step, one thread: the same covariance run to run). ``rec`` is adjusted in place.
+    None where it cannot be computed (the reason logged)."""
+    cfg = pycolmap.BundleAdjustmentConfig()
+    for i in ids:
+        cfg.add_image(i)
+    for cid in rec.cameras:
+        if not refined.get(cid):
+            cfg.set_constant_cam_intrinsics(cid)
+    cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.print_summary = False
+    parts = {p for v in refined.values() for p in v}
+    opts.refine_focal_length = "focal" in parts
+    opts.refine_principal_point = "principal point" in parts
+    opts.refine_extra_params = "distortion" in parts
+    opts.ceres.solver_options.max_num_iterations = 1
+    opts.ceres.solver_options.num_threads = 1    # the same covariance run to run (threads sum in any order)
+    ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
+    ba.solve()
+    try:
+        return pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, ba)
+    except Exception as e:  # noqa: BLE001 - pycolmap raises for some degenerate problems; None is the answer
+        log.warning("block covariance failed: %s", e)
+        return None
+
+
 def reference_shape(ref_model: Path, names: set[str] | None = None, settings: SigmaSettings = SigmaSettings(),
                     feature_side: int | None = None, positions_of=None) -> ReferenceShape | None:
     """The reference block's own uncertainty, per photo (the part its ground points carry, in the
@@ -294,29 +324,7 @@ def reference_shape(ref_model: Path, names: set[str] | None = None, settings: Si
     ids = _sub_block(rec, sorted(rec.reg_image_ids()), names, settings.max_photos)
     if len(ids) < 3:
         return None
-    refined = refined_intrinsics(ref_model)
-    cfg = pycolmap.BundleAdjustmentConfig()
-    for i in ids:
-        cfg.add_image(i)
-    for cid in rec.cameras:
-        if not refined.get(cid):
-            cfg.set_constant_cam_intrinsics(cid)
-    cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.print_summary = False
-    parts = {p for v in refined.values() for p in v}
-    opts.refine_focal_length = "focal" in parts
-    opts.refine_principal_point = "principal point" in parts
-    opts.refine_extra_params = "distortion" in parts
-    opts.ceres.solver_options.max_num_iterations = 1
-    opts.ceres.solver_options.num_threads = 1    # the same covariance run to run (threads sum in any order)
-    ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
-    ba.solve()
-    try:
-        cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, ba)
-    except Exception as e:  # noqa: BLE001 - the term is left out; the reason is logged
-        log.warning("reference block covariance failed: %s", e)
-        cov = None
+    cov = block_covariance(rec, ids, refined_intrinsics(ref_model))
     if cov is None:
         return None
     n_all = len(ids)
