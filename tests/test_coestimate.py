@@ -68,3 +68,21 @@ def test_a_pose_whose_sigma_exceeds_its_distance_to_the_scene_is_unverified():
     assert per_image["q/far"]["unverified"].startswith("its position sigma (1.45e+03 m) is larger than its distance")
     assert "unverified" not in per_image["q/fine"] and "unverified" not in per_image["q/blind"]
     assert per_image["q/none"]["unverified"] == "the final BA gave this photo no covariance"
+
+
+def test_query_photos_join_the_reference_camera_only_where_its_calibration_stays_within_its_own_uncertainty():
+    from gtkit.sfm.register.coestimate import _why_not_joined
+
+    held = {"applied": True, "residual_median_m": {"before": 0.002, "after": 0.002}, "n_priors": 7}
+
+    def check(d2):
+        return {1: {"parts": ["focal", "principal point", "distortion"], "before": [2759.1, 1520.6, 1008.1, 0.0],
+                    "after": [2773.6, 1489.4, 1058.8, 0.006], "d2": d2, "limit": 18.47}, "joined": ["q"]}
+    assert _why_not_joined(held, check(7.1)) is None            # the 3-photo block's change (entry every 2nd)
+    why = _why_not_joined(held, check(1262.1))                  # another camera of the same size (10 % zoom)
+    assert "another camera of the same size" in why and "focal 2774 px" in why and "limit 18" in why, why
+    assert "could not be computed" in _why_not_joined(held, check(None))
+    assert "only 2 photos" in _why_not_joined({"applied": False, "reason": "only 2 photos with a usable position"},
+                                              check(1.0))
+    moved = {"applied": True, "residual_median_m": {"before": 0.002, "after": 1.456}}
+    assert "moved the block off its positions" in _why_not_joined(moved, check(1.0))

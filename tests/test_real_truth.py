@@ -10,8 +10,9 @@ Asserted (the issue's done-when): every query photo registered has a sigma, at l
 positions for the reference only (the anchor, benchmarks/bench_real_truth.py: 4.0 mm median) within
 its run-to-run spread (a few mm). Measured (stop 62: both blocks' features at 3200 px, the sigma
 checked against the reference photos' positions; stop 63: the pose-prior BA converged): 3.0 mm median;
-stop 64, the query photos co-estimated with the reference block: 3.4 mm, 4 of 4 within 2 sigma
-(benchmarks/bench_real_truth.py, docs/benchmarks.md "Real photos with independent truth"). About
+stop 64, the query photos co-estimated with the reference block: 3.4 mm, 4 of 4 within 2 sigma; stop 67,
+the self-calibrated camera calibrated again with them: 3.8 mm, 4 of 4 (benchmarks/bench_real_truth.py,
+docs/benchmarks.md "Real photos with independent truth"). About
 50 s on 2 idle cores. Without positions and with the calibrated K: the benchmark,
 and behind GTKIT_SLOW=1 here.
 """
