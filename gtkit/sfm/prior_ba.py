@@ -98,6 +98,19 @@ def moved_off_positions(report: dict) -> bool:
     return bool(report.get("applied") and res and res["after"] > max(2.0 * res["before"], res["before"] + 0.05))
 
 
+def options_refining(refined: dict[int, list[str]]) -> pycolmap.BundleAdjustmentOptions:
+    """BA options (no summary printed) refining the lens parameters named in ``refined`` ({camera id:
+    "focal", "principal point", "distortion"}) of any camera; the cameras not in it are to be held by the
+    BA's config (``set_constant_cam_intrinsics``)."""
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.print_summary = False
+    parts = {p for v in refined.values() for p in v}
+    opts.refine_focal_length = "focal" in parts
+    opts.refine_principal_point = "principal point" in parts
+    opts.refine_extra_params = "distortion" in parts
+    return opts
+
+
 def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndarray], outliers: set[str],
                       accuracy: dict[str, float] | None = None, min_sigma_m: float = 0.005,
                       max_iterations: int = 50, num_threads: int = -1, seeding: bool = False,
@@ -129,12 +142,7 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
         priors.append(pycolmap.PosePrior(
             position=np.asarray(positions[n], np.float64), position_covariance=np.diag([sh ** 2, sh ** 2, sv ** 2]),
             coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN, corr_data_id=by_name[n].data_id))
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.print_summary = False
-    parts = {p for v in free_intrinsics.values() for p in v}
-    opts.refine_focal_length = "focal" in parts
-    opts.refine_principal_point = "principal point" in parts
-    opts.refine_extra_params = "distortion" in parts
+    opts = options_refining(free_intrinsics)
     opts.ceres.solver_options.max_num_iterations = max_iterations
     # stop once a step changes the cost by less than 1e-7 of itself (COLMAP sets 0: it went on until the
     # gradient was 1e-4): small seed 0 converged in 3 steps instead of 6, 2.8 -> 2.1 CPU s, cameras within

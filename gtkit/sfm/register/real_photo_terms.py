@@ -50,6 +50,7 @@ import pycolmap
 from ...pose import Pose, skew
 from ...project import read_stage_record
 from ..accuracy_claim import SURVEY_GRADE_M
+from ..prior_ba import options_refining
 from ..database import FeatureSettings
 
 log = logging.getLogger(__package__)
@@ -287,12 +288,7 @@ def block_covariance(rec: pycolmap.Reconstruction, ids: list[int], refined: dict
         if not refined.get(cid):
             cfg.set_constant_cam_intrinsics(cid)
     cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.THREE_POINTS)
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.print_summary = False
-    parts = {p for v in refined.values() for p in v}
-    opts.refine_focal_length = "focal" in parts
-    opts.refine_principal_point = "principal point" in parts
-    opts.refine_extra_params = "distortion" in parts
+    opts = options_refining(refined)
     opts.ceres.solver_options.max_num_iterations = 1
     opts.ceres.solver_options.num_threads = 1    # the same covariance run to run (threads sum in any order)
     ba = pycolmap.create_default_ceres_bundle_adjuster(opts, cfg, rec)
