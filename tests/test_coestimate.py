@@ -77,7 +77,7 @@ def test_query_photos_join_the_reference_camera_only_where_its_calibration_stays
 
     def check(d2):
         return {1: {"parts": ["focal", "principal point", "distortion"], "before": [2759.1, 1520.6, 1008.1, 0.0],
-                    "after": [2773.6, 1489.4, 1058.8, 0.006], "d2": d2, "limit": 18.47}, "joined": ["q"]}
+                    "after": [2773.6, 1489.4, 1058.8, 0.006], "d2": d2, "limit": 18.47}}
     assert _why_not_joined(held, check(7.1)) is None            # the 3-photo block's change (entry every 2nd)
     why = _why_not_joined(held, check(1262.1))                  # another camera of the same size (10 % zoom)
     assert "another camera of the same size" in why and "focal 2774 px" in why and "limit 18" in why, why

@@ -162,8 +162,6 @@ def _why_not_joined(held: dict, calibration: dict) -> str | None:
         return "its BA " + (held.get("reason") or f"moved the block off its positions (residual median "
                                                   f"{res['before']:.3f} -> {res['after']:.3f} m)")
     for c, v in calibration.items():
-        if not isinstance(c, int):
-            continue
         if v["d2"] is None:
             return f"camera {c}: the reference block's own uncertainty of its calibration could not be computed"
         if v["d2"] > v["limit"]:
@@ -182,23 +180,24 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
     ``priors``: the reference photos' positions as the reference stage held them: {"positions",
     "accuracy", "outliers", "sigma_hv"}; ``self_calibrated``: the reference cameras its SfM calibrated
     ({id: the parts it refined}): the block's BA refines them again, with every query photo of the same
-    camera (``same_camera``: {photo: the reference calibration of its camera}) as that camera. Empty dicts where it could not be done (the record says why). The
-    co-estimated block is left in ``work/model``."""
+    camera (``same_camera``: {photo: the reference calibration of its camera}) as that camera, where the
+    calibration it gives agrees with the reference photos' own (:func:`_calibration_check`). Empty dicts where
+    it could not be done (the record says why). The co-estimated block is left in ``work/model``."""
     photos = {n: v for n, v in photos.items() if Path(v[2]).is_file()}
     if not photos:
         return {}, {}, {"applied": False, "reason": "no query photo with a feature database"}
-    poses = joint = {n: v[0] for n, v in photos.items()}
+    joint = {n: v[0] for n, v in photos.items()}
     free = {c: p for c, p in (self_calibrated or {}).items() if p and c in ref_rec.cameras}
     shared = {c: Camera.from_pycolmap(ref_rec.cameras[c]) for c in free}
     joins = {n: c for n, c in (same_camera or {}).items() if n in photos and _is_one_of(c, shared)}
     try:
-        rec = _completed_block(ref_rec, ref_db, photos, poses, image_root, Path(work), settings, num_threads,
+        rec = _completed_block(ref_rec, ref_db, photos, joint, image_root, Path(work), settings, num_threads,
                                reproducible, {})
         joined = None
         if joins:
             # the joint poses were estimated with the query photos' own calibration: each photo that joins
             # as a reference camera is resected again with it on the completed block's points first
-            again = _resected_with(rec, joins, poses)
+            again = _resected_with(rec, joins, joint)
             joined = _completed_block(ref_rec, ref_db, {n: (v[0], joins.get(n, v[1]), v[2]) for n, v in photos.items()},
                                       again, image_root, Path(work) / "joined", settings, num_threads, reproducible,
                                       shared)
@@ -215,17 +214,17 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
                                  num_threads=ba_threads(num_threads, reproducible),
                                  sigma_hv=tuple(priors["sigma_hv"]), free_intrinsics=free_intrinsics)
 
-    calibration, free = {}, {c: p for c, p in free.items() if joined is not None
-                             and any(im.camera_id == c for n in joins if (im := joined.find_image_with_name(n)))}
+    calibration, not_joined = {}, None
+    free = {c: p for c, p in free.items() if joined is not None
+            and any(im.camera_id == c for n in joins if (im := joined.find_image_with_name(n)))}
     if free:
         held = adjusted(joined, free)
         calibration = _calibration_check(ref_rec, free, joined)
-        calibration["joined"] = sorted(joins)
         why = _why_not_joined(held, calibration)
         if why is None:
             rec = joined
         else:
-            calibration["not_joined"] = why
+            not_joined = {"photos": sorted(joins), "why": why, "check": {str(c): v for c, v in calibration.items()}}
             log.warning("query photos not co-estimated as the reference camera: %s; as their own cameras, held", why)
             free = {}
     if not free:
@@ -236,7 +235,7 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
                     + (held.get("reason") or f"moved it off its positions (residual median {res['before']:.3f} -> "
                                               f"{res['after']:.3f} m)")}
     out, moved, cams = {}, {}, {}
-    for n in sorted(poses):
+    for n in sorted(joint):
         im = rec.find_image_with_name(n)
         if im is None or not im.has_pose:
             continue
@@ -262,10 +261,8 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
                "moved_m": moved,
                "calibrated": {str(c): calibration[c] for c in free},
                "joined_reference_camera": sorted(cams)}
-    if calibration.get("not_joined"):
-        rec_out["not_joined_reference_camera"] = {"photos": calibration["joined"], "why": calibration["not_joined"],
-                                                  "check": {str(c): v for c, v in calibration.items()
-                                                            if isinstance(c, int)}}
+    if not_joined:
+        rec_out["not_joined_reference_camera"] = not_joined
     log.info("query photos co-estimated with the reference block: %d photos, moved %.1f mm (median) from the joint "
              "adjustment, reference photos %.1f mm", len(out), 1000 * (rec_out["query_moved_median_m"] or 0.0),
              1000 * (rec_out["reference_moved_median_m"] or 0.0))
