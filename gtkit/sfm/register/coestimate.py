@@ -102,9 +102,20 @@ def _completed_block(ref_rec, ref_db: Path, photos: dict, poses: dict[str, Pose]
                                        options=opts, refine_intrinsics=False)
 
 
-def _is_one_of(cam: Camera, cams: dict[int, Camera]) -> bool:
-    return any(cam.model == c.model and (cam.width, cam.height) == (c.width, c.height)
-               and np.allclose(cam.params, c.params, rtol=1e-9, atol=1e-9) for c in cams.values())
+def _one_of(cam: Camera, cams: dict[int, Camera]) -> Camera | None:
+    """The camera of ``cams`` that ``cam`` is (model, size and parameters), or None."""
+    return next((c for c in cams.values() if cam.model == c.model and (cam.width, cam.height) == (c.width, c.height)
+                 and np.allclose(cam.params, c.params, rtol=1e-9, atol=1e-9)), None)
+
+
+def _off_positions(held: dict, it: str) -> str | None:
+    """Why a pose-prior BA's block (``it``, as the sentence names it) is not kept
+    (:func:`gtkit.sfm.prior_ba.hold_by_positions`'s report: not applied, or moved off its positions), or None."""
+    if held.get("applied") and not moved_off_positions(held):
+        return None
+    res = held.get("residual_median_m") or {}
+    return held.get("reason") or (f"moved {it} off its positions (residual median {res['before']:.3f} -> "
+                                  f"{res['after']:.3f} m)")
 
 
 def _resected_with(rec: pycolmap.Reconstruction, cams: dict[str, Camera], poses: dict[str, Pose]
@@ -157,10 +168,9 @@ def _calibration_check(ref_rec: pycolmap.Reconstruction, free: dict[int, list[st
 
 def _why_not_joined(held: dict, calibration: dict) -> str | None:
     """Why the block with the query photos as the reference camera is not the one kept, or None."""
-    if not held.get("applied") or moved_off_positions(held):
-        res = held.get("residual_median_m") or {}
-        return "its BA " + (held.get("reason") or f"moved the block off its positions (residual median "
-                                                  f"{res['before']:.3f} -> {res['after']:.3f} m)")
+    off = _off_positions(held, "the block")
+    if off:
+        return f"its BA {off}"
     for c, v in calibration.items():
         if v["d2"] is None:
             return f"camera {c}: the reference block's own uncertainty of its calibration could not be computed"
@@ -189,7 +199,8 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
     joint = {n: v[0] for n, v in photos.items()}
     free = {c: p for c, p in (self_calibrated or {}).items() if p and c in ref_rec.cameras}
     shared = {c: Camera.from_pycolmap(ref_rec.cameras[c]) for c in free}
-    joins = {n: c for n, c in (same_camera or {}).items() if n in photos and _is_one_of(c, shared)}
+    # {photo: the very reference camera it joins as}
+    joins = {n: sc for n, c in (same_camera or {}).items() if n in photos and (sc := _one_of(c, shared)) is not None}
     try:
         rec = _completed_block(ref_rec, ref_db, photos, joint, image_root, Path(work), settings, num_threads,
                                reproducible, {})
@@ -229,11 +240,9 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
             free = {}
     if not free:
         held = adjusted(rec, None)
-    if not held.get("applied") or moved_off_positions(held):
-        res = held.get("residual_median_m") or {}
-        return {}, {}, {"applied": False, "reason": "the block's BA with the query photos "
-                    + (held.get("reason") or f"moved it off its positions (residual median {res['before']:.3f} -> "
-                                              f"{res['after']:.3f} m)")}
+    off = _off_positions(held, "it")
+    if off:
+        return {}, {}, {"applied": False, "reason": f"the block's BA with the query photos {off}"}
     out, moved, cams = {}, {}, {}
     for n in sorted(joint):
         im = rec.find_image_with_name(n)

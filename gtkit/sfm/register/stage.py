@@ -217,7 +217,8 @@ def _adjust_and_record(project: Project, ref: ReferenceBlock, placed: Placed, cl
     joined = set(result["coestimation"].get("joined_reference_camera") or [])
     for q in blocks:
         c = placed.report[q].get("calibration")
-        if c and joined and all(n in joined for n in poses if n.startswith(f"queries/{q}/")):
+        mine = [n for n in poses if n.startswith(f"queries/{q}/")]
+        if c and mine and all(n in joined for n in mine):
             c["joint_source"] = c["source"]
             c["source"] = ("the reference block's camera, calibrated again with the reference photos and the query "
                            "photos together (co-estimated)")
