@@ -215,15 +215,12 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
     except (RuntimeError, ValueError) as e:   # COLMAP's checks: the joint poses stay, the record says why
         return {}, {}, {"applied": False, "reason": f"the block with the query photos could not be made ({e})"}
     n_before = ref_rec.num_points3D()
-    centres = {im.name: im.projection_center() for im in rec.images.values() if im.has_pose}
-    # a reference photo the reference stage did not hold (off its position) stays out of the priors here too
-    off = {n for n, p in priors["positions"].items() if n in centres and np.linalg.norm(centres[n] - p)
-           > 3.0 * max(list(priors["sigma_hv"]) + [priors["accuracy"].get(n) or 0.0])}
 
-    def adjusted(block, free_intrinsics):
-        return hold_by_positions(block, priors["positions"], set(priors["outliers"]) | off, priors["accuracy"],
+    def adjusted(block, free_intrinsics):   # the reference photos the reference stage held, as it held them
+        return hold_by_positions(block, priors["positions"], set(priors["outliers"]), priors["accuracy"],
                                  num_threads=ba_threads(num_threads, reproducible),
-                                 sigma_hv=tuple(priors["sigma_hv"]), free_intrinsics=free_intrinsics)
+                                 sigma_hv=tuple(priors["sigma_hv"]), free_intrinsics=free_intrinsics,
+                                 on_positions=True)
 
     calibration, not_joined = {}, None
     free = {c: p for c, p in free.items() if joined is not None

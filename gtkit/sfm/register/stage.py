@@ -251,7 +251,8 @@ def _coestimated(project: Project, ref: ReferenceBlock, placed: Placed, poses: d
         log.info("query photos not co-estimated with the reference block: %s", why)
         return poses, {"applied": False, "reason": why}
     priors = {"positions": positions, "accuracy": accuracy, "sigma_hv": (held["sigma_h_m"], held["sigma_v_m"]),
-              "outliers": (block.get("georegistration") or {}).get("outliers") or []}
+              # the photos the reference stage did not hold (a record before its "not_held": its georegistration's)
+              "outliers": held.get("not_held", (block.get("georegistration") or {}).get("outliers") or [])}
     self_calibrated = {int(c): v.get("refined", []) for c, v in (block.get("intrinsics") or {}).items()
                        if "principal point" in v.get("refined", [])}
     # a photo of the same camera as a self-calibrated reference camera joins the block as that camera:
