@@ -36,6 +36,14 @@ def _residuals(rec: pycolmap.Reconstruction, positions: dict[str, np.ndarray], n
     return np.array([c[n] - positions[n] for n in names])
 
 
+def _aligns(rec: pycolmap.Reconstruction, positions: dict[str, np.ndarray], names: list[str],
+            ransac: pycolmap.RANSACOptions) -> bool:
+    """Whether pycolmap's alignment of the block to the positions of ``names`` succeeds with ``ransac``:
+    the similarity its pose-prior BA fits before it adds the priors (none of them where this fails)."""
+    return pycolmap.align_reconstruction_to_locations(rec, names, np.array([positions[n] for n in names], np.float64),
+                                                      3, ransac) is not None
+
+
 def _iterations(summary) -> dict:
     """{'steps', 'failed'} of the solve (failed: steps Ceres rejected, e.g. a linear solver failure)."""
     c = getattr(summary, "ceres_summary", None)
@@ -115,7 +123,7 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
                       accuracy: dict[str, float] | None = None, min_sigma_m: float = 0.005,
                       max_iterations: int = 50, num_threads: int = -1, seeding: bool = False,
                       sigma_hv: tuple[float, float] | None = None,
-                      free_intrinsics: dict[int, list[str]] | None = None, on_positions: bool = False) -> dict:
+                      free_intrinsics: dict[int, list[str]] | None = None) -> dict:
     """Pose-prior BA of a georegistered block (see the module docstring); returns its report.
     ``seeding``: the seeded mapper's seeding BA (gtkit.sfm.seeded), as COLMAP runs it: every point kept
     (they are triangulated from the priors and filtered by the mapper after it), its stop and its choice
@@ -123,9 +131,7 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
     ``sigma_hv``: the priors' horizontal and vertical sigma where a position states no accuracy (default:
     the block's scatter about its positions, as above). ``free_intrinsics``: {camera id: the parts this
     BA refines, "focal", "principal point", "distortion"}; every other camera's intrinsics held (default:
-    all held). ``on_positions``: the block already sits on these positions and every photo held was
-    judged there (the co-estimation's block, :mod:`gtkit.sfm.register.coestimate`): the alignment before the
-    BA keeps every one of them (below)."""
+    all held)."""
     accuracy = accuracy or {}
     free_intrinsics = {c: p for c, p in (free_intrinsics or {}).items() if p and c in rec.cameras}
     names = sorted(im.name for im in rec.images.values()
@@ -134,9 +140,33 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
     if len(names) < 3:
         return {"applied": False, "reason": f"only {len(names)} photos with a usable position"}
     t0 = time.time()
-    dropped = {} if seeding else drop_unplaceable_points(rec)
     r0 = _residuals(rec, positions, names)
     sig_h, sig_v = sigma_hv or (max(min_sigma_m, _scatter(r0[:, :2].ravel())), max(min_sigma_m, _scatter(r0[:, 2])))
+    # pycolmap's alignment RANSAC: seeded (pycolmap's -1 draws from the calling thread's generator, whose
+    # state depends on what ran before in the process: tiny seed 0, three reference SfMs in one process
+    # gave three blocks, each separate process the same one; issue 49, gtkit.determinism), its inlier
+    # threshold from the positions' own accuracy (3 sigma). Left at 0, pycolmap aligned a surveyed facade
+    # block (5 photos a station, 5 mm positions) 5.46 m off them (residual median 0.069 m before; the
+    # suite's one xfail until issue 55); with a threshold it is placed where its positions agree: 0.0004 m
+    prior_opts = pycolmap.PosePriorBundleAdjustmentOptions()
+    ransac = prior_opts.alignment_ransac   # (pycolmap's RANSACOptions() has other defaults)
+    ransac.random_seed = 0
+    ransac.max_error = 3.0 * max([sig_h, sig_v] + [accuracy[n] for n in names if accuracy.get(n)])
+    alignment = {"threshold_m": round(ransac.max_error, 4)}
+    if not seeding and not _aligns(rec, positions, names, ransac):
+        # where that alignment fails, pycolmap adds none of the priors and the BA runs free. The block is
+        # georegistered to these very photos' positions: the alignment keeps every one of them instead
+        # (entry-P10's every 2nd photo, K known: a 3-photo block 10-25 mm from its positions at 7.9 mm left
+        # 2 of 3 inside 3 sigma; the block was recorded as held while nothing held it)
+        wider = 2.0 * float(np.linalg.norm(r0, axis=1).max())
+        ransac.max_error = max(wider, ransac.max_error)
+        if not _aligns(rec, positions, names, ransac):
+            return {"applied": False, "reason": f"pycolmap could not align the block to its {len(names)} positions "
+                                                f"(within {alignment['threshold_m']:.3f} m nor {wider:.3f} m): "
+                                                "its pose-prior BA would use none of them"}
+        alignment.update(threshold_m=round(ransac.max_error, 4), widened_from_m=alignment["threshold_m"],
+                         why="fewer than 3 positions within 3 sigma")
+    dropped = {} if seeding else drop_unplaceable_points(rec)
     priors = []
     by_name = {im.name: im for im in rec.images.values()}
     for n in names:
@@ -162,29 +192,13 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
     for cid in rec.cameras:
         if cid not in free_intrinsics:
             cfg.set_constant_cam_intrinsics(cid)
-    prior_opts = pycolmap.PosePriorBundleAdjustmentOptions()
-    # its alignment RANSAC seeded: pycolmap's -1 draws from the calling thread's generator, whose state
-    # depends on what ran before in the process (tiny seed 0: three reference SfMs in one process gave
-    # three blocks, each separate process the same one; issue 49, gtkit.determinism)
-    prior_opts.alignment_ransac.random_seed = 0
-    # ... and its inlier threshold from the positions' own accuracy (3 sigma). Left at 0, pycolmap aligns
-    # the block to the priors by a plain least-squares Sim(3) before the BA, which moved a surveyed facade
-    # block (5 photos a station, 5 mm positions) 5.46 m off them (residual median 0.069 m before; the
-    # suite's one xfail until issue 55); with a threshold it is placed where its positions agree: 0.0004 m
-    worst = max([sig_h, sig_v] + [accuracy[n] for n in names if accuracy.get(n)])
-    prior_opts.alignment_ransac.max_error = 3.0 * worst
-    if on_positions:
-        # a block already on its positions is only re-aligned: a photo beyond 3 sigma would leave its
-        # RANSAC a smaller set, and too few positions for a similarity (entry-P10's every 2nd photo, K
-        # known: a 3-photo block 10-25 mm from its positions at 7.9 mm left 2, and the block went 1.46 m off)
-        prior_opts.alignment_ransac.max_error = max(3.0 * worst, 2.0 * float(np.linalg.norm(r0, axis=1).max()))
     summary = pycolmap.create_pose_prior_bundle_adjuster(opts, prior_opts, cfg, priors, rec).solve()
     r1 = _residuals(rec, positions, names)
     rep = {"applied": True, "n_priors": len(names), "n_stated_accuracy": sum(1 for n in names if accuracy.get(n)),
            # the photos with a position left out of the priors (the georegistration's or the mapper's outliers)
            "not_held": sorted(im.name for im in rec.images.values() if im.has_pose and im.name in positions
                               and im.name not in names),
-           "sigma_h_m": round(sig_h, 4), "sigma_v_m": round(sig_v, 4),
+           "sigma_h_m": round(sig_h, 4), "sigma_v_m": round(sig_v, 4), "alignment": alignment,
            "residual_median_m": {"before": round(float(np.median(np.linalg.norm(r0, axis=1))), 4),
                                  "after": round(float(np.median(np.linalg.norm(r1, axis=1))), 4)},
            "points_dropped": dropped, "converged": summary.termination_type == pycolmap.BundleAdjustmentTerminationType.CONVERGENCE,

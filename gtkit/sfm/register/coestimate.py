@@ -219,8 +219,7 @@ def coestimate(ref_rec: pycolmap.Reconstruction, ref_db: Path, photos: dict[str,
     def adjusted(block, free_intrinsics):   # the reference photos the reference stage held, as it held them
         return hold_by_positions(block, priors["positions"], set(priors["outliers"]), priors["accuracy"],
                                  num_threads=ba_threads(num_threads, reproducible),
-                                 sigma_hv=tuple(priors["sigma_hv"]), free_intrinsics=free_intrinsics,
-                                 on_positions=True)
+                                 sigma_hv=tuple(priors["sigma_hv"]), free_intrinsics=free_intrinsics)
 
     calibration, not_joined = {}, None
     free = {c: p for c, p in free.items() if joined is not None
