@@ -26,6 +26,7 @@ from pathlib import Path
 
 import pytest
 
+from benchmarks.bench_real_truth import exact_medians
 from conftest import ROOT, SHARED
 
 TRUTH_SPLIT = SHARED / "tools" / "truth_split.py"
@@ -57,20 +58,7 @@ def _held_out(tmp: Path, *extra: str, toml: str = "", set_dir: Path = FOUNTAIN) 
     assert f[0] == "summary", ev
     return {"n": int(f[1]), "median_m": float(f[2]), "worst_m": float(f[4]), "n_sigma": int(f[5]),
             "within_2sigma": float(f[6]), "ref_median_m": float(f[7]), "text": ev, "run": run.stdout,
-            "exact": _exact_medians(set_dir, Path(project))}
-
-
-def _exact_medians(set_dir: Path, project: Path) -> tuple[float, float]:
-    """(query median, reference median) in metres, unrounded (the eval prints 0.1 mm: 3.05 mm against
-    1.5 x 1.97 mm read 0.0030 <= 1.5 x 0.0020), by the shared tool's own functions."""
-    import runpy
-
-    import numpy as np
-
-    ts = runpy.run_path(str(TRUTH_SPLIT))
-    truth = ts["_truth"](set_dir)
-    return tuple(float(np.median([e[0] for e in ts["_errors"](ts["_poses"](project, rel), truth).values()]))
-                 for rel in ("work/register/poses.txt", "work/sfm_reference/poses.txt"))
+            "exact": exact_medians(set_dir, Path(project))}
 
 
 def _check(s: dict, n_held: int, anchor_m: float = ANCHOR_MEDIAN_M) -> None:
