@@ -367,7 +367,7 @@ def gtkit_case(set_dir: Path, known: bool, rtk: bool, out: Path, toml_items: lis
     query, ref = exact_medians(set_dir, project)   # the verdict's 1.5x on unrounded figures
     if query is not None:
         res["median_pos_m"] = query
-    res["ref_median_pos_m"] = ref   # nothing registered: the reference block's own figure all the same
+    res["ref_median_pos_m"] = ref   # unrounded, and there even where no query photo registered
     return res
 
 

@@ -158,6 +158,7 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
         # georegistered to these very photos' positions: the alignment keeps every one of them instead
         # (entry-P10's every 2nd photo, K known: a 3-photo block 10-25 mm from its positions at 7.9 mm left
         # 2 of 3 inside 3 sigma; the block was recorded as held while nothing held it)
+        inside = int((np.linalg.norm(r0, axis=1) <= ransac.max_error).sum())
         wider = 2.0 * float(np.linalg.norm(r0, axis=1).max())
         ransac.max_error = max(wider, ransac.max_error)
         if not _aligns(rec, positions, names, ransac):
@@ -165,7 +166,8 @@ def hold_by_positions(rec: pycolmap.Reconstruction, positions: dict[str, np.ndar
                                                 f"(within {alignment['threshold_m']:.3f} m nor {wider:.3f} m): "
                                                 "its pose-prior BA would use none of them"}
         alignment.update(threshold_m=round(ransac.max_error, 4), widened_from_m=alignment["threshold_m"],
-                         why="fewer than 3 positions within 3 sigma")
+                         why=f"pycolmap's alignment failed within 3 sigma ({inside} of {len(names)} photos "
+                             f"within it of their positions)")
     dropped = {} if seeding else drop_unplaceable_points(rec)
     priors = []
     by_name = {im.name: im for im in rec.images.values()}
